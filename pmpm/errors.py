@@ -1,0 +1,20 @@
+"""Exceptions that map to pmpm's exit statuses (SPEC §1): CaseError → 2, NumericalError → 3."""
+
+
+class CaseError(Exception):
+    """Bad user input: case file, mesh, particle file or command-line option (exit status 2).
+
+    The message is one line that names the file, the key or line, what is wrong and what is
+    allowed, e.g. ``case.toml: [fluid] viscosity = -0.001: must be > 0 (Pa s)``.
+    """
+
+    exit_status = 2
+
+
+class NumericalError(Exception):
+    """A numerical failure: instability, NaN, a solver that did not converge (exit status 3).
+
+    The message says at which step and time, which particle or cell, and what to change.
+    """
+
+    exit_status = 3
