@@ -1,0 +1,433 @@
+"""The case file (SPEC §3): ``case.toml`` → one frozen dataclass per section.
+
+Every key is declared once in ``SCHEMA`` with its type, default, check and unit; the parser, the
+``--set`` overrides, the error messages and the README's key table all read that one declaration.
+A section that is absent from the file stays ``None`` on the ``Case``: its model is switched off.
+"""
+from __future__ import annotations
+
+import difflib
+import math
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from .errors import CaseError
+
+REQUIRED = object()  # marks a key without a default
+
+
+@dataclass(frozen=True)
+class Key:
+    """One case key: its TOML type, default, allowed values and unit."""
+
+    name: str
+    kind: str  # float | int | bool | str | vec3 | ivec3 | strings
+    default: Any = REQUIRED
+    check: str = ""  # ">0", ">=0", "0..1", or "" (none)
+    choices: tuple = ()
+    unit: str = ""
+    help: str = ""
+
+
+# ----------------------------------------------------------------------------------------------
+# The schema: section → keys. Tables with user-chosen names (boundary.<name>) and arrays of
+# tables (particles.add, injection) are declared the same way and handled by the parser.
+# ----------------------------------------------------------------------------------------------
+SCHEMA: dict[str, tuple[Key, ...]] = {
+    "run": (
+        Key("end_time", "float", check=">0", unit="s", help="simulated time to reach"),
+        Key("dt", "float", check=">0", unit="s", help="time step (of the flow, when one is solved)"),
+        Key("output_every", "float", None, ">0", unit="s", help="simulated seconds between outputs (default: 20 outputs)"),
+        Key("checkpoint_every", "float", None, ">0", unit="s", help="simulated seconds between checkpoints (default: none)"),
+        Key("gravity", "vec3", (0.0, 0.0, -9.81), unit="m/s²"),
+        Key("seed", "int", 1, ">=0", help="every random choice derives from it"),
+        Key("max_cfl", "float", 1.0, ">0", help="warn when the flow's CFL number exceeds it"),
+        Key("adaptive_cfl", "float", 0.0, ">=0", help="target CFL for an adaptive dt (0: fixed dt)"),
+        Key("wall_time_limit", "float", 0.0, ">=0", unit="s", help="stop cleanly after this wall time (0: none)"),
+    ),
+    "mesh": (
+        Key("file", "str", None, help="mesh file: gmsh .msh or any format meshio reads"),
+        Key("cell_type", "str", "hex", choices=("hex", "tet"), help="box cells: hexahedra or tetrahedra"),
+    ),
+    "mesh.box": (
+        Key("lower", "vec3", unit="m"),
+        Key("upper", "vec3", unit="m"),
+        Key("cells", "ivec3", check=">0"),
+    ),
+    "fluid": (
+        Key("density", "float", check=">0", unit="kg/m³"),
+        Key("viscosity", "float", check=">0", unit="Pa s", help="dynamic viscosity"),
+        Key("convection", "str", "linear_upwind", choices=("upwind", "linear_upwind", "central"),
+            help="face interpolation of the convected velocity"),
+        Key("pressure_rtol", "float", 1e-8, ">0", help="relative tolerance of the pressure solve"),
+        Key("nonorthogonal_correctors", "int", 1, ">=0", help="extra pressure solves on skewed meshes"),
+    ),
+    "boundary.*": (
+        Key("type", "str", "wall", choices=("wall", "inlet", "outlet", "symmetry")),
+        Key("velocity", "vec3", (0.0, 0.0, 0.0), unit="m/s", help="inlet velocity, or a wall's translation"),
+        Key("angular_velocity", "vec3", (0.0, 0.0, 0.0), unit="rad/s", help="a wall's rotation"),
+        Key("center", "vec3", (0.0, 0.0, 0.0), unit="m", help="a wall's rotation centre"),
+        Key("motion", "str", "surface", choices=("surface", "rigid"),
+            help="surface: the wall stays, its surface moves (a lid, a spinning drum); rigid: the wall "
+                 "itself moves (a paddle; particles-only scenes)"),
+        Key("pressure", "float", 0.0, unit="Pa", help="outlet pressure"),
+        Key("restitution", "float", None, "0..1", help="overrides [collisions] for this wall"),
+        Key("friction", "float", None, ">=0", help="overrides [collisions] for this wall"),
+        Key("rolling_friction", "float", None, ">=0", help="overrides [collisions] for this wall"),
+    ),
+    "coupling": (
+        Key("mode", "str", "two-way", choices=("two-way", "one-way")),
+        Key("volume_fraction", "str", "nodes", choices=("nodes", "subcell"),
+            help="nodes: the paper's share of cell vertices inside; subcell: k³ sample points"),
+        Key("subcell_points", "int", 4, ">0", help="k for volume_fraction = subcell"),
+        Key("substeps", "int", 1, ">0", help="particle substeps per flow step"),
+    ),
+    "particles": (
+        Key("file", "str", None, help="ASCII particle file: x y z [vx vy vz wx wy wz] radius density"),
+    ),
+    "particles.add": (
+        Key("position", "vec3", unit="m"),
+        Key("velocity", "vec3", (0.0, 0.0, 0.0), unit="m/s"),
+        Key("angular_velocity", "vec3", (0.0, 0.0, 0.0), unit="rad/s"),
+        Key("radius", "float", check=">0", unit="m"),
+        Key("density", "float", check=">0", unit="kg/m³"),
+        Key("motion", "str", "free", choices=("free", "fixed", "prescribed")),
+    ),
+    "collisions": (
+        Key("restitution", "float", 0.9, "0..1"),
+        Key("friction", "float", 0.3, ">=0", help="Coulomb friction coefficient"),
+        Key("rolling_friction", "float", 0.0, ">=0", help="rolling resistance coefficient"),
+    ),
+    "field_forces": (
+        Key("G_p", "float", 0.0, help="eq. 9: > 0 attracts, < 0 repels"),
+        Key("n1", "float", 1.0), Key("n2", "float", 1.0), Key("n3", "float", 2.0),
+        Key("G_w", "float", 0.0, help="eq. 10: > 0 attracts, < 0 repels"),
+        Key("n4", "float", 1.0), Key("n5", "float", 2.0),
+        Key("cutoff", "float", None, ">0", unit="m", help="interaction range (default: 5 mean diameters)"),
+    ),
+    "injection": (
+        Key("kind", "str", "point", choices=("point", "random", "cylindrical")),
+        Key("start", "float", 0.0, ">=0", unit="s"),
+        Key("stop", "float", math.inf, ">=0", unit="s"),
+        Key("interval", "float", check=">0", unit="s"),
+        Key("count", "int", 1, ">0", help="particles per release"),
+        Key("position", "vec3", (0.0, 0.0, 0.0), unit="m"),
+        Key("velocity", "vec3", (0.0, 0.0, 0.0), unit="m/s"),
+        Key("angular_velocity", "vec3", (0.0, 0.0, 0.0), unit="rad/s"),
+        Key("radius", "float", check=">0", unit="m"),
+        Key("density", "float", check=">0", unit="kg/m³"),
+        Key("lower", "vec3", None, unit="m", help="random: box of release points"),
+        Key("upper", "vec3", None, unit="m"),
+        Key("origin", "vec3", None, unit="m", help="cylindrical: origin of the frame"),
+        Key("axis", "vec3", (0.0, 0.0, 1.0), help="cylindrical: axis direction"),
+        Key("r", "float", 0.0, ">=0", unit="m"),
+        Key("theta", "float", 0.0, unit="rad"),
+        Key("z", "float", 0.0, unit="m"),
+        Key("location_velocity", "vec3", (0.0, 0.0, 0.0), unit="m/s", help="moving injection location"),
+        Key("location_angular_velocity", "vec3", (0.0, 0.0, 0.0), unit="rad/s"),
+        Key("rotation_center", "vec3", (0.0, 0.0, 0.0), unit="m"),
+    ),
+    "deposition": (
+        Key("zones", "strings", (), help="wall boundaries on which particles stay"),
+    ),
+}
+SECTIONS = ("run", "mesh", "fluid", "boundary", "coupling", "particles", "collisions",
+            "field_forces", "injection", "deposition")
+ARRAY_TABLES = {"injection", "particles.add"}
+
+
+# ----------------------------------------------------------------------------------------------
+# The typed case
+# ----------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Section:
+    """Values of one table, as attributes (``case.fluid.viscosity``)."""
+
+    values: dict = field(default_factory=dict)
+
+    def __getattr__(self, name):
+        try:
+            return self.values[name]
+        except KeyError:
+            raise AttributeError(name) from None
+
+
+@dataclass(frozen=True)
+class Case:
+    """A validated case. Absent optional sections are ``None`` (their model is off)."""
+
+    path: Path
+    run: Section
+    mesh: Section
+    box: Section | None
+    fluid: Section | None
+    boundaries: dict  # name → Section (only those listed in the file)
+    coupling: Section | None
+    particles: Section | None
+    particles_add: tuple  # of Section
+    collisions: Section | None
+    field_forces: Section | None
+    injections: tuple  # of Section
+    deposition: Section | None
+
+    @property
+    def folder(self) -> Path:
+        return self.path.parent
+
+    def resolve(self, relative: str) -> Path:
+        """A path from the case, relative to the case file's folder."""
+        return (self.folder / relative).resolve()
+
+    def models(self) -> list[str]:
+        """The models this case switches on, in the order of a time step."""
+        names = ["particles" if (self.particles or self.injections) else None,
+                 "flow" if self.fluid else None,
+                 f"coupling ({self.coupling.mode})" if self.fluid and self.coupling else None,
+                 "collisions" if self.collisions else None,
+                 "field forces" if self.field_forces else None,
+                 "injection" if self.injections else None,
+                 "deposition" if self.deposition else None]
+        return [n for n in names if n]
+
+
+# ----------------------------------------------------------------------------------------------
+# Reading
+# ----------------------------------------------------------------------------------------------
+def case_path(argument: str) -> Path:
+    """``CASE`` on the command line: a folder holding case.toml, or a .toml file."""
+    path = Path(argument)
+    if path.is_dir():
+        path = path / "case.toml"
+    if not path.is_file():
+        raise CaseError(f"{argument}: no case file here (expected a folder holding case.toml, or a .toml file)")
+    return path.resolve()
+
+
+def load_case(path: Path, overrides: list[str] = ()) -> Case:
+    """Read, override (``--set KEY=VALUE``) and validate a case file."""
+    try:
+        raw = tomllib.loads(path.read_text())
+    except tomllib.TOMLDecodeError as error:
+        raise CaseError(f"{path.name}: not valid TOML: {error}") from None
+    except (OSError, UnicodeDecodeError) as error:
+        raise CaseError(f"{path.name}: cannot read: {error}") from None
+    for override in overrides:
+        apply_override(raw, override, path.name)
+    return build_case(raw, path)
+
+
+def apply_override(raw: dict, text: str, filename: str) -> None:
+    """Apply one ``--set a.b.c=VALUE`` to the raw TOML dict; VALUE is a TOML value or a bare word."""
+    dotted, sep, value_text = text.partition("=")
+    dotted = dotted.strip()
+    if not sep or not dotted:
+        raise CaseError(f"--set {text}: expected KEY=VALUE, e.g. --set fluid.viscosity=0.1")
+    try:
+        value = tomllib.loads(f"v = {value_text}")["v"]
+    except tomllib.TOMLDecodeError:
+        value = value_text.strip()  # a bare word: --set coupling.mode=one-way
+    parts = dotted.split(".")
+    section = parts[0]
+    if section not in SECTIONS:
+        raise CaseError(f"--set {dotted}: unknown section [{section}]{suggest(section, SECTIONS)}")
+    table_keys = {".".join(parts[:i]) for i in range(1, len(parts))}
+    if table_keys & ARRAY_TABLES:
+        raise CaseError(f"--set {dotted}: [[{section}]] is a list of tables; edit the case file instead")
+    schema_name = "boundary.*" if section == "boundary" and len(parts) == 3 else ".".join(parts[:-1])
+    keys = SCHEMA.get(schema_name)
+    if keys is None or parts[-1] not in {k.name for k in keys}:
+        known = [k.name for k in keys] if keys else []
+        raise CaseError(f"--set {dotted}: no such key{suggest(parts[-1], known)}")
+    node = raw
+    for part in parts[:-1]:
+        node = node.setdefault(part, {})
+        if not isinstance(node, dict):
+            raise CaseError(f"--set {dotted}: {part} is not a table in {filename}")
+    node[parts[-1]] = value
+
+
+def suggest(word: str, candidates) -> str:
+    """' (did you mean "x"?)' for the nearest candidate, or a list of the allowed ones."""
+    close = difflib.get_close_matches(word, list(candidates), n=1, cutoff=0.6)
+    if close:
+        return f' (did you mean "{close[0]}"?)'
+    return f"; allowed: {', '.join(candidates)}" if candidates else ""
+
+
+def build_case(raw: dict, path: Path) -> Case:
+    name = path.name
+    for section in raw:
+        if section not in SECTIONS:
+            raise CaseError(f"{name}: unknown section [{section}]{suggest(section, SECTIONS)}")
+    for section in ("run", "mesh"):
+        if section not in raw:
+            raise CaseError(f"{name}: missing section [{section}] (required)")
+
+    def table(schema_name: str, label: str, required: bool = False) -> Section | None:
+        data = raw
+        for part in label.split("."):
+            data = data.get(part) if isinstance(data, dict) else None
+        if data is None:
+            if required:
+                raise CaseError(f"{name}: missing section [{label}] (required)")
+            return None
+        if not isinstance(data, dict):
+            raise CaseError(f"{name}: [{label}] must be a table")
+        return Section(check_table(data, SCHEMA[schema_name], label, name))
+
+    mesh_raw = raw["mesh"]
+    if not isinstance(mesh_raw, dict):
+        raise CaseError(f"{name}: [mesh] must be a table")
+    mesh = Section(check_table({k: v for k, v in mesh_raw.items() if k != "box"}, SCHEMA["mesh"], "mesh", name,
+                               extra=("box",)))
+    box = table("mesh.box", "mesh.box")
+    if (box is None) == (mesh.file is None):
+        raise CaseError(f"{name}: [mesh] needs exactly one of box = {{...}} or file = \"...\"")
+
+    boundaries_raw = raw.get("boundary", {})
+    if not isinstance(boundaries_raw, dict):
+        raise CaseError(f"{name}: [boundary] must hold tables [boundary.<name>]")
+    boundaries = {}
+    for bname, data in boundaries_raw.items():
+        if not isinstance(data, dict):
+            raise CaseError(f"{name}: [boundary.{bname}] must be a table")
+        boundaries[bname] = Section(check_table(data, SCHEMA["boundary.*"], f"boundary.{bname}", name))
+
+    particles_raw = raw.get("particles")
+    particles = particles_add = None
+    if particles_raw is not None:
+        if not isinstance(particles_raw, dict):
+            raise CaseError(f"{name}: [particles] must be a table")
+        particles = Section(check_table({k: v for k, v in particles_raw.items() if k != "add"},
+                                        SCHEMA["particles"], "particles", name, extra=("add",)))
+        particles_add = array_of_tables(particles_raw.get("add", []), "particles.add", name)
+    injections = array_of_tables(raw.get("injection", []), "injection", name)
+
+    case = Case(
+        path=path,
+        run=table("run", "run", required=True),
+        mesh=mesh,
+        box=box,
+        fluid=table("fluid", "fluid"),
+        boundaries=boundaries,
+        coupling=table("coupling", "coupling"),
+        particles=particles,
+        particles_add=particles_add or (),
+        collisions=table("collisions", "collisions"),
+        field_forces=table("field_forces", "field_forces"),
+        injections=injections,
+        deposition=table("deposition", "deposition"),
+    )
+    check_consistency(case)
+    return case
+
+
+def array_of_tables(data, label: str, filename: str) -> tuple:
+    if not isinstance(data, list) or not all(isinstance(d, dict) for d in data):
+        raise CaseError(f"{filename}: [[{label}]] must be a list of tables")
+    return tuple(Section(check_table(d, SCHEMA[label], f"{label}[{i}]", filename)) for i, d in enumerate(data))
+
+
+def check_table(data: dict, keys: tuple[Key, ...], label: str, filename: str, extra=()) -> dict:
+    """Typed values of one table; refuses unknown keys, wrong types and values out of range."""
+    known = {k.name: k for k in keys}
+    for key in data:
+        if key not in known and key not in extra:
+            raise CaseError(f"{filename}: [{label}] unknown key \"{key}\"{suggest(key, list(known) + list(extra))}")
+    values = {}
+    for key in keys:
+        if key.name in data:
+            values[key.name] = check_value(data[key.name], key, label, filename)
+        elif key.default is REQUIRED:
+            raise CaseError(f"{filename}: [{label}] missing key \"{key.name}\"{describe(key)}")
+        else:
+            values[key.name] = key.default
+    return values
+
+
+def describe(key: Key) -> str:
+    what = {"float": "a number", "int": "an integer", "bool": "true or false", "str": "a string",
+            "vec3": "three numbers [x, y, z]", "ivec3": "three integers [nx, ny, nz]",
+            "strings": "a list of strings"}[key.kind]
+    unit = f" ({key.unit})" if key.unit else ""
+    return f" ({what}{unit})"
+
+
+def check_value(value, key: Key, label: str, filename: str):
+    where = f"{filename}: [{label}] {key.name} = {format_value(value)}"
+    kind = key.kind
+    ok = True
+    if kind == "float":
+        ok = isinstance(value, (int, float)) and not isinstance(value, bool)
+        value = float(value) if ok else value
+        ok = ok and math.isfinite(value) or (ok and value == math.inf)
+    elif kind == "int":
+        ok = isinstance(value, int) and not isinstance(value, bool)
+    elif kind == "bool":
+        ok = isinstance(value, bool)
+    elif kind == "str":
+        ok = isinstance(value, str)
+    elif kind in ("vec3", "ivec3"):
+        scalar = int if kind == "ivec3" else (int, float)
+        ok = (isinstance(value, list) and len(value) == 3
+              and all(isinstance(v, scalar) and not isinstance(v, bool) for v in value))
+        if ok:
+            value = tuple(int(v) if kind == "ivec3" else float(v) for v in value)
+            ok = all(math.isfinite(v) for v in value)
+    elif kind == "strings":
+        ok = isinstance(value, list) and all(isinstance(v, str) for v in value)
+        value = tuple(value) if ok else value
+    if not ok:
+        raise CaseError(f"{where}: must be {describe(key).strip()[1:-1]}")
+    if key.choices and value not in key.choices:
+        raise CaseError(f"{where}: must be one of {', '.join(map(repr, key.choices))}"
+                        f"{suggest(value, key.choices) if isinstance(value, str) else ''}")
+    numbers = value if isinstance(value, tuple) else (value,)
+    unit = f" ({key.unit})" if key.unit else ""
+    if key.check == ">0" and not all(v > 0 for v in numbers):
+        raise CaseError(f"{where}: must be > 0{unit}")
+    if key.check == ">=0" and not all(v >= 0 for v in numbers):
+        raise CaseError(f"{where}: must be >= 0{unit}")
+    if key.check == "0..1" and not all(0 <= v <= 1 for v in numbers):
+        raise CaseError(f"{where}: must be between 0 and 1")
+    return value
+
+
+def format_value(value) -> str:
+    if isinstance(value, str):
+        return f'"{value}"'
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, (list, tuple)):
+        return "[" + ", ".join(format_value(v) for v in value) + "]"
+    return repr(value)
+
+
+def check_consistency(case: Case) -> None:
+    """Checks that involve more than one key."""
+    name = case.path.name
+    run = case.run
+    if run.output_every is None:
+        object.__setattr__(case.run, "values", {**run.values, "output_every": run.end_time / 20})
+    if case.box is not None:
+        lower, upper = case.box.lower, case.box.upper
+        if not all(u > l for l, u in zip(lower, upper)):
+            raise CaseError(f"{name}: [mesh.box] upper = {format_value(upper)} must exceed lower = "
+                            f"{format_value(lower)} in every direction")
+    for bname, b in case.boundaries.items():
+        if b.motion == "rigid" and case.fluid is not None and b.type == "wall" and any(b.velocity + b.angular_velocity):
+            raise CaseError(f"{name}: [boundary.{bname}] motion = \"rigid\" moves the wall itself, which the "
+                            "fixed flow mesh cannot follow; use it in scenes without [fluid], or motion = \"surface\"")
+    for i, inj in enumerate(case.injections):
+        if inj.stop < inj.start:
+            raise CaseError(f"{name}: [[injection]] #{i}: stop = {inj.stop} must be >= start = {inj.start}")
+        if inj.kind == "random" and (inj.lower is None or inj.upper is None):
+            raise CaseError(f"{name}: [[injection]] #{i}: kind = \"random\" needs lower = [...] and upper = [...]")
+        if inj.kind == "cylindrical" and inj.origin is None:
+            raise CaseError(f"{name}: [[injection]] #{i}: kind = \"cylindrical\" needs origin = [...]")
+    if case.deposition is not None:
+        for zone in case.deposition.zones:
+            if zone in case.boundaries and case.boundaries[zone].type != "wall":
+                raise CaseError(f"{name}: [deposition] zones: \"{zone}\" is a {case.boundaries[zone].type}, not a wall")
