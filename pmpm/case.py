@@ -258,7 +258,9 @@ def suggest(word: str, candidates) -> str:
 
 def build_case(raw: dict, path: Path) -> Case:
     name = path.name
-    for section in raw:
+    for section, value in raw.items():
+        if not isinstance(value, (dict, list)):
+            raise CaseError(f"{name}: key \"{section}\" stands outside any [section]")
         if section not in SECTIONS:
             raise CaseError(f"{name}: unknown section [{section}]{suggest(section, SECTIONS)}")
     for section in ("run", "mesh"):

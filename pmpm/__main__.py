@@ -1,0 +1,98 @@
+"""Command line (SPEC §1): ``python -m pmpm CASE [--output DIR] [--set K=V]... [--check] [--quiet]``.
+
+Single-dash options go to PETSc's options database (``-pressure_ksp_type cg``). Exit status:
+0 done, 2 bad input (CaseError), 3 numerical failure (NumericalError), 1 anything else.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+
+USAGE = """pmpm CASE [--output DIR] [--set KEY=VALUE ...] [--check] [--restart FILE] [--quiet] [-petsc_option value ...]
+
+CASE is a folder holding case.toml, or a .toml file. Examples:
+  pmpm cases/settling_sphere
+  mpirun -n 2 python -m pmpm cases/cavity --set fluid.viscosity=0.01 -pressure_ksp_monitor"""
+
+
+def split_petsc_options(argv: list[str]) -> tuple[list[str], list[str]]:
+    """Separate PETSc's single-dash options (with their values) from pmpm's own arguments."""
+    ours, petsc = [], []
+    i = 0
+    while i < len(argv):
+        arg = argv[i]
+        if arg.startswith("-") and not arg.startswith("--") and len(arg) > 2 and not _is_number(arg):
+            petsc.append(arg)
+            if i + 1 < len(argv) and (not argv[i + 1].startswith("-") or _is_number(argv[i + 1])):
+                petsc.append(argv[i + 1])
+                i += 1
+        else:
+            ours.append(arg)
+        i += 1
+    return ours, petsc
+
+
+def _is_number(text: str) -> bool:
+    try:
+        float(text)
+        return True
+    except ValueError:
+        return False
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse that raises instead of printing usage and exiting (so every rank exits the same way)."""
+
+    def error(self, message):
+        from .errors import CaseError
+        raise CaseError(f"command line: {message} (see pmpm --help)")
+
+
+def parse_arguments(argv):
+    parser = _Parser(prog="pmpm", usage=USAGE, add_help=True)
+    parser.add_argument("case", help="case folder or .toml file")
+    parser.add_argument("--output", help="output folder (default: output/ beside the case file)")
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                        help="override a case value by its dotted TOML path")
+    parser.add_argument("--check", action="store_true", help="validate and describe the run, then exit")
+    parser.add_argument("--restart", metavar="FILE", help="continue from a checkpoint")
+    parser.add_argument("--quiet", action="store_true", help="no progress lines")
+    return parser.parse_args(argv)
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    ours, petsc_options = split_petsc_options(argv)
+    import petsc4py
+    petsc4py.init([sys.argv[0]] + petsc_options)
+    from mpi4py import MPI
+
+    from .errors import CaseError, NumericalError
+
+    comm = MPI.COMM_WORLD
+    try:
+        arguments = parse_arguments(ours)
+        from .simulation import run_from_arguments
+        run_from_arguments(comm, arguments)
+        return 0
+    except SystemExit as exit_request:  # --help
+        return int(exit_request.code or 0)
+    except (CaseError, NumericalError) as error:
+        if comm.rank == 0:
+            kind = "error" if isinstance(error, CaseError) else "numerical failure"
+            print(f"pmpm: {kind}: {error}", file=sys.stderr, flush=True)
+        return error.exit_status
+    except KeyboardInterrupt:
+        return 130
+    except BaseException:
+        # A bug, not a user mistake: show it, and take every rank down rather than leave one waiting.
+        import traceback
+        traceback.print_exc()
+        sys.stderr.flush()
+        if comm.size > 1:
+            comm.Abort(1)
+        return 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
