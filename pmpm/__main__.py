@@ -81,7 +81,10 @@ def main(argv: list[str] | None = None) -> int:
         if comm.rank == 0:
             kind = "error" if isinstance(error, CaseError) else "numerical failure"
             print(f"pmpm: {kind}: {error}", file=sys.stderr, flush=True)
-        return error.exit_status
+        # Errors are collective (pmpm.parallel.agree). Only rank 0 reports the status, after the
+        # others wait for its line: mpirun may drop a rank's output once another exits non-zero.
+        comm.Barrier()
+        return error.exit_status if comm.rank == 0 else 0
     except KeyboardInterrupt:
         return 130
     except BaseException:

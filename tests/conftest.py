@@ -13,7 +13,7 @@ PYTHON = str(ROOT / ".venv" / "bin" / "python") if (ROOT / ".venv" / "bin" / "py
 
 def mpirun_command(n: int) -> list[str]:
     """``mpirun -n N python`` with the flags this machine needs (root, 2 cores)."""
-    flags = ["--oversubscribe"] + (["--allow-run-as-root"] if os.geteuid() == 0 else [])
+    flags = ["--oversubscribe", "--quiet"] + (["--allow-run-as-root"] if os.geteuid() == 0 else [])
     return ["mpirun", *flags, "-n", str(n), PYTHON]
 
 
@@ -30,3 +30,9 @@ def pytest_runtest_logreport(report):
 def comm():
     from mpi4py import MPI
     return MPI.COMM_WORLD
+
+
+@pytest.fixture
+def shared_tmp(tmp_path, comm):
+    """A temporary folder that every rank sees (rank 0's tmp_path)."""
+    return Path(comm.bcast(str(tmp_path), root=0))

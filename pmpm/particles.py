@@ -1,0 +1,78 @@
+"""The particles' state: arrays sorted by global id, identical on every rank (ARCHITECTURE.md).
+
+Particle counts are small next to cell counts, so every rank holds every particle and applies the
+same update; work over cells is what the ranks share. Solid spheres: m = ρ 4/3 π r³, I = 2/5 m r².
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+FREE, FIXED, PRESCRIBED = 0, 1, 2  # ParticleState.motion codes (pmpm.injection.MOTION_CODES)
+
+
+@dataclass
+class ParticleState:
+    """Every particle's state (SI). Rows are particles, sorted by ``id``."""
+
+    id: np.ndarray        # (n,) int64, never reused
+    x: np.ndarray         # (n, 3) centre position
+    v: np.ndarray         # (n, 3) translational velocity
+    omega: np.ndarray     # (n, 3) angular velocity
+    radius: np.ndarray    # (n,)
+    density: np.ndarray   # (n,)
+    motion: np.ndarray    # (n,) int8: FREE, FIXED or PRESCRIBED
+    deposited: np.ndarray  # (n,) bool: stuck to a deposition wall or to a deposited particle
+
+    @classmethod
+    def empty(cls) -> "ParticleState":
+        z3, z1 = np.zeros((0, 3)), np.zeros(0)
+        return cls(np.zeros(0, np.int64), z3, z3.copy(), z3.copy(), z1, z1.copy(),
+                   np.zeros(0, np.int8), np.zeros(0, bool))
+
+    def __len__(self) -> int:
+        return len(self.id)
+
+    @property
+    def volume(self) -> np.ndarray:
+        return 4.0 / 3.0 * np.pi * self.radius ** 3
+
+    @property
+    def mass(self) -> np.ndarray:
+        return self.density * self.volume
+
+    @property
+    def inertia(self) -> np.ndarray:
+        """Moment of inertia of a solid sphere about its centre, 2/5 m r²."""
+        return 0.4 * self.mass * self.radius ** 2
+
+    @property
+    def movable(self) -> np.ndarray:
+        """Particles whose velocities respond to forces and impulses (free and not deposited)."""
+        return (self.motion == FREE) & ~self.deposited
+
+    def append(self, ids, x, v, omega, radius, density, motion) -> None:
+        """Add particles (ids larger than every id held, so the rows stay sorted)."""
+        n = len(ids)
+        self.id = np.concatenate([self.id, np.asarray(ids, np.int64)])
+        self.x = np.concatenate([self.x, np.reshape(x, (n, 3))])
+        self.v = np.concatenate([self.v, np.reshape(v, (n, 3))])
+        self.omega = np.concatenate([self.omega, np.reshape(omega, (n, 3))])
+        self.radius = np.concatenate([self.radius, radius])
+        self.density = np.concatenate([self.density, density])
+        self.motion = np.concatenate([self.motion, np.asarray(motion, np.int8)])
+        self.deposited = np.concatenate([self.deposited, np.zeros(n, bool)])
+
+    def remove(self, which: np.ndarray) -> None:
+        """Drop the particles where ``which`` (bool mask) is true."""
+        keep = ~which
+        for name in ("id", "x", "v", "omega", "radius", "density", "motion", "deposited"):
+            setattr(self, name, getattr(self, name)[keep])
+
+
+def accelerate(state: ParticleState, force: np.ndarray, torque: np.ndarray, dt: float) -> None:
+    """Newton–Euler update of the free particles' V and ω over dt (explicit)."""
+    free = state.movable
+    state.v[free] += dt * force[free] / state.mass[free, None]
+    state.omega[free] += dt * torque[free] / state.inertia[free, None]

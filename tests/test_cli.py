@@ -1,0 +1,135 @@
+"""The command line on 2 ranks: every SPEC §2 bad input exits 2 with one line on stderr, no
+traceback, no hang; results are never overwritten; --set and --check work."""
+import json
+import subprocess
+
+import numpy as np
+import pytest
+
+from conftest import PYTHON, mpirun_command
+
+CASE = """
+[run]
+end_time = 0.02
+dt = 0.005
+output_every = 0.01
+[mesh]
+box = { lower = [0, 0, 0], upper = [0.1, 0.1, 0.1], cells = [4, 4, 4] }
+[[particles.add]]
+position = [0.05, 0.05, 0.05]
+velocity = [0.1, 0.0, 0.0]
+radius = 0.01
+density = 1000.0
+[[particles.add]]
+position = [0.02, 0.02, 0.08]
+radius = 0.01
+density = 1000.0
+[collisions]
+"""
+
+
+def run_pmpm(args, ranks=2, timeout=60):
+    command = (mpirun_command(ranks) if ranks > 1 else [PYTHON]) + ["-m", "pmpm", *map(str, args)]
+    return subprocess.run(command, capture_output=True, text=True, timeout=timeout)
+
+
+def make_case(tmp_path, text=CASE, extra_files=()):
+    (tmp_path / "case.toml").write_text(text)
+    for name, content in extra_files:
+        (tmp_path / name).write_text(content)
+    return tmp_path
+
+
+BAD_INPUTS = [
+    ("unknown key", ("radius = 0.01", "radus = 0.01"), 'unknown key "radus" (did you mean "radius"?)'),
+    ("unknown section", ("[collisions]", "[colisions]"), 'unknown section [colisions] (did you mean "collisions"?)'),
+    ("wrong type", ("end_time = 0.02", 'end_time = "soon"'), "[run] end_time = \"soon\": must be a number"),
+    ("zero radius", ("radius = 0.01", "radius = 0.0"), "radius = 0.0: must be > 0"),
+    ("negative density", ("density = 1000.0", "density = -1.0"), "density = -1.0: must be > 0"),
+    ("zero viscosity", ("[collisions]", "[collisions]\n[fluid]\ndensity = 1.0\nviscosity = 0.0"), "viscosity = 0.0: must be > 0"),
+    ("dt <= 0", ("dt = 0.005", "dt = -0.005"), "[run] dt = -0.005: must be > 0"),
+    ("end time <= 0", ("end_time = 0.02", "end_time = 0.0"), "[run] end_time = 0.0: must be > 0"),
+    ("outside the domain", ("position = [0.05, 0.05, 0.05]", "position = [0.5, 0.05, 0.05]"), "outside the domain"),
+    ("overlapping particles", ("position = [0.02, 0.02, 0.08]", "position = [0.055, 0.05, 0.05]"), "overlap"),
+    ("overlapping a wall", ("position = [0.02, 0.02, 0.08]", "position = [0.005, 0.05, 0.05]"), "wall"),
+    ("missing mesh file", ("box = { lower = [0, 0, 0], upper = [0.1, 0.1, 0.1], cells = [4, 4, 4] }", 'file = "nope.msh"'), "nope.msh"),
+    ("missing particle file", ("[collisions]", "[collisions]\n[particles]\nfile = \"nope.txt\""), "nope.txt"),
+    ("unknown boundary", ("[collisions]", "[collisions]\n[boundary.inlet]\ntype = \"wall\""), 'no boundary "inlet"'),
+]
+
+
+@pytest.mark.parametrize("label, change, message", BAD_INPUTS, ids=[b[0] for b in BAD_INPUTS])
+def test_bad_input_exits_2_on_two_ranks(tmp_path, label, change, message):
+    text = CASE.replace(*change, 1)
+    assert text != CASE
+    result = run_pmpm([make_case(tmp_path, text), "--quiet"])
+    assert result.returncode == 2, result.stderr
+    lines = [line for line in result.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1, result.stderr
+    assert message in lines[0]
+    assert "Traceback" not in result.stderr + result.stdout
+
+
+def test_mesh_file_that_is_not_a_mesh(tmp_path):
+    text = CASE.replace("box = { lower = [0, 0, 0], upper = [0.1, 0.1, 0.1], cells = [4, 4, 4] }", 'file = "mesh.msh"')
+    folder = make_case(tmp_path, text, [("mesh.msh", "this is not a mesh\n")])
+    result = run_pmpm([folder, "--quiet"])
+    assert result.returncode == 2, result.stderr
+    assert "not a mesh" in result.stderr and "Traceback" not in result.stderr
+    assert len(result.stderr.strip().splitlines()) == 1
+
+
+def test_unknown_set_key_and_bad_option(tmp_path):
+    folder = make_case(tmp_path)
+    result = run_pmpm([folder, "--set", "run.dtt=0.1"])
+    assert result.returncode == 2 and 'did you mean "dt"' in result.stderr
+    result = run_pmpm([folder, "--frobnicate"])
+    assert result.returncode == 2 and "unrecognized arguments" in result.stderr
+
+
+def test_check_set_and_results_kept(tmp_path):
+    folder = make_case(tmp_path)
+    result = run_pmpm([folder, "--check", "--set", "mesh.box.cells=[5,5,5]"])
+    assert result.returncode == 0, result.stderr
+    assert "125 cells" in result.stdout and "2 at start" in result.stdout
+    assert not (folder / "output").exists()
+
+    first = run_pmpm([folder, "--quiet"])
+    assert first.returncode == 0, first.stderr
+    summary = json.loads((folder / "output" / "summary.json").read_text())
+    assert summary["ranks"] == 2 and summary["steps"] == 4
+    before = (folder / "output" / "particles.csv").read_text()
+    second = run_pmpm([folder, "--quiet", "--set", "run.end_time=0.01"])
+    assert second.returncode == 0, second.stderr
+    assert "kept as" in second.stdout
+    assert (folder / "output.1" / "particles.csv").read_text() == before
+    rows = np.loadtxt(folder / "output" / "particles.csv", delimiter=",", skiprows=1)
+    assert rows[:, 0].max() == pytest.approx(0.01)
+
+
+def test_one_and_two_ranks_write_the_same_files(tmp_path):
+    """fields.h5 (mesh, cell by cell via cell_centers; particles) and particles.csv agree on 1 and 2 ranks."""
+    import h5py
+
+    folder = make_case(tmp_path, CASE.replace("cells = [4, 4, 4]", "cells = [6, 5, 4]"))
+    outputs = {}
+    for ranks in (1, 2):
+        result = run_pmpm([folder, "--quiet", "--output", tmp_path / f"out{ranks}"], ranks=ranks)
+        assert result.returncode == 0, result.stderr
+        outputs[ranks] = tmp_path / f"out{ranks}"
+    with h5py.File(outputs[1] / "fields.h5", "r") as one, h5py.File(outputs[2] / "fields.h5", "r") as two:
+        centers = one["mesh/cell_centers"][...]
+        assert centers.shape == (120, 3)
+        np.testing.assert_allclose(two["mesh/cell_centers"][...], centers, rtol=0, atol=1e-15)
+        np.testing.assert_allclose(two["mesh/cell_volumes"][...], one["mesh/cell_volumes"][...], rtol=1e-14)
+        # connectivity names the same vertex coordinates
+        for f in (one, two):
+            assert np.allclose(f["mesh/vertices"][...][f["mesh/cells"][...]].mean(axis=1), centers, atol=1e-15)
+        assert sorted(one["output"]) == sorted(two["output"]) == ["000000", "000001", "000002"]
+        for group in one["output"]:
+            assert one[f"output/{group}"].attrs["time"] == two[f"output/{group}"].attrs["time"]
+            np.testing.assert_allclose(two[f"output/{group}/particles/position"][...],
+                                       one[f"output/{group}/particles/position"][...], rtol=0, atol=1e-14)
+    a = np.loadtxt(outputs[1] / "particles.csv", delimiter=",", skiprows=1)
+    b = np.loadtxt(outputs[2] / "particles.csv", delimiter=",", skiprows=1)
+    np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-15)
