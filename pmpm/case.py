@@ -83,6 +83,8 @@ SCHEMA: dict[str, tuple[Key, ...]] = {
             help="nodes: the paper's share of cell vertices inside; subcell: k³ sample points"),
         Key("subcell_points", "int", 4, ">0", help="k for volume_fraction = subcell"),
         Key("substeps", "int", 1, ">0", help="particle substeps per flow step"),
+        Key("update", "str", "implicit", choices=("implicit", "explicit"),
+            help="implicit: stable for any density ratio; explicit: the paper's, unstable for light particles"),
     ),
     "particles": (
         Key("file", "str", None, help="ASCII particle file: x y z [vx vy vz wx wy wz] radius density"),

@@ -203,9 +203,11 @@ class FlowSolver:
         return self.D @ face
 
     # -- the step --------------------------------------------------------------------------------
-    def step(self, state: FluidState, dt: float, source=None, step: int = 0, time: float = 0.0) -> dict:
+    def step(self, state: FluidState, dt: float, source=None, patch=None, step: int = 0,
+             time: float = 0.0) -> dict:
         """Collective. Advance ``state`` in place by dt. ``source``: momentum source (n_local, 3) in
-        m⁴/s² (force/ρ integrated over the cell), or None. Returns diagnostics."""
+        m⁴/s² (force/ρ integrated over the cell), or None. ``patch(u_star)``: called (collectively)
+        with the predicted velocity, which it may change in its owned rows. Returns diagnostics."""
         rho, nu, V = self.rho, self.nu, self.volume
         u, p, flux = state.u, state.p, state.flux
         n_int = self.n_interior
@@ -237,6 +239,8 @@ class FlowSolver:
             column = np.ascontiguousarray(u_star[:, k])
             solver.solve(rhs[:, k], column, step, time)
             u_star[:, k] = column
+        if patch is not None:  # the particles' direct forcing, before the projection (pmpm.coupling)
+            patch(u_star)
         self.mesh.update_ghosts(u_star)
 
         # 2. face flux with the Rhie–Chow pressure term

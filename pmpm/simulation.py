@@ -12,16 +12,19 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+from mpi4py import MPI
 
 from . import io
 from .case import Case, case_path, load_case, suggest
 from .errors import CaseError, NumericalError
 from .collisions import (advance_with_collisions, build_walls, check_initial_particles, collision_settings,
                          overlaps_existing)
+from .coupling import Coupling
+from .fluid import FlowSolver
 from .forces import field_forces_of_case, gravity_buoyancy
 from .injection import NewParticles, build_injectors, initial_particles
 from .mesh import Mesh
-from .parallel import agree, allreduce_sum, print0
+from .parallel import agree, allreduce_sum, print0, warn
 from .particles import ParticleState, accelerate
 
 
@@ -116,9 +119,17 @@ class Simulation:
         self.injectors = build_injectors(case)
         self.walls = build_walls(case, mesh) if (case.collisions or case.field_forces or case.deposition) else None
         self.settings = collision_settings(case) if case.collisions else None
-        self.flow = self.fluid_state = None
+        self.flow = self.fluid_state = self.coupling = None
+        self.fluid_density = 0.0
         if case.fluid is not None:
-            raise CaseError(f"{case.path.name}: [fluid]: the flow solver is not part of this build yet")
+            self.fluid_density = case.fluid.density
+            self.flow = FlowSolver(mesh, case.fluid, case.boundaries)
+            self.fluid_state = self.flow.initial_state()
+            self.coupling = Coupling(mesh, case.coupling, case.fluid.density)
+            self.volume_fraction = np.zeros(mesh.n_local_cells)
+            self.cfl_warned = False
+        self.hydro_force = np.zeros((0, 3))
+        self.hydro_torque = np.zeros((0, 3))
         start = initial_particles(case)
         self.add_particles(start, validate=True)
 
@@ -182,43 +193,88 @@ class Simulation:
             io.write_summary(self.comm, output, self.summary(status, setup_seconds, total))
 
     def advance(self, dt: float) -> None:
-        """Collective. One time step, stage by stage."""
-        case, state = self.case, self.particles
+        """Collective. One time step, stage by stage (ARCHITECTURE.md)."""
+        case = self.case
         # 1. inject new particles
         if self.injectors:
             with Timer(self.times, "injection"):
                 new = [injector.due(self.time + dt) for injector in self.injectors]
                 self.add_particles(NewParticles.concatenate(new))
-        # 6. gravity with buoyancy and field forces
+        state = self.particles
+        # 6 (needed by the coupled update). gravity with buoyancy, field forces
         with Timer(self.times, "forces"):
-            force = gravity_buoyancy(state, np.array(case.run.gravity), 0.0)
+            force = gravity_buoyancy(state, np.array(case.run.gravity), self.fluid_density)
             if case.field_forces is not None:
                 force += field_forces_of_case(state, self.walls, case.field_forces)
-        # 7. update V and ω, then move with collisions resolved in time order
-        with Timer(self.times, "collisions" if self.settings else "motion"):
-            accelerate(state, force, np.zeros_like(force), dt)
-            if self.settings is not None:
-                self.collision_stats = advance_with_collisions(state, self.walls, dt, self.settings)
-            else:
-                free = state.motion != 1
-                state.x[free] += state.v[free] * dt
+        torque = np.zeros_like(force)
+        if self.flow is not None:
+            force, torque = self.flow_step(dt, force, torque)
+        # 7. update V and ω, then move, with collisions resolved in time order
+        substeps = case.coupling.substeps if self.flow is not None else 1
+        for _ in range(substeps):
+            with Timer(self.times, "collisions" if self.settings else "motion"):
+                accelerate(state, force, torque, dt / substeps)
+                if self.settings is not None:
+                    self.collision_stats = advance_with_collisions(state, self.walls, dt / substeps, self.settings)
+                else:
+                    free = state.motion != 1
+                    state.x[free] += state.v[free] * dt / substeps
         # 8. particles that left the domain are removed
         with Timer(self.times, "owners"):
-            outside = ~self.inside_domain(state.x)
-            if outside.any():
-                self.removed += int(outside.sum())
-                state.remove(outside)
+            if len(state):
+                outside = ~self.inside_domain(state.x)
+                if outside.any():
+                    self.removed += int(outside.sum())
+                    state.remove(outside)
+                    self.hydro_force, self.hydro_torque = self.hydro_force[~outside], self.hydro_torque[~outside]
         self.time += dt
         self.step += 1
         check_finite(state, self.step, self.time)
 
+    def flow_step(self, dt: float, force: np.ndarray, torque: np.ndarray):
+        """Collective. Steps 2–5: locate, flow with the particles' patch, drag and torque.
+        Returns the total force and torque on each particle (external + hydrodynamic)."""
+        state, coupling = self.particles, self.coupling
+        with Timer(self.times, "coupling"):
+            touched = coupling.locate(state)
+        hydro = {}
+
+        def patch(u_star):
+            with Timer(self.times, "coupling"):
+                hydro["force"], hydro["torque"] = coupling.exchange(state, touched, u_star, dt, force, torque,
+                                                                    self.step, self.time)
+
+        with Timer(self.times, "flow"):
+            info = self.flow.step(self.fluid_state, dt, patch=patch if len(state) else None,
+                                  step=self.step, time=self.time)
+        self.pressure_iterations = getattr(self, "pressure_iterations", 0) + info["pressure_iterations"]
+        self.volume_fraction[:self.mesh.n_owned_cells] = coupling.volume_fraction(touched)
+        self.flow.check(self.fluid_state, self.step, self.time)
+        if not self.cfl_warned and self.step % 10 == 0:
+            cfl = self.flow.cfl(self.fluid_state, dt)
+            if cfl > self.case.run.max_cfl:
+                if self.comm.rank == 0:
+                    warn(self.comm, f"step {self.step}: CFL number {cfl:.2f} exceeds [run] max_cfl = "
+                                    f"{self.case.run.max_cfl:g}; the explicit convection may go unstable: reduce [run] dt")
+                self.cfl_warned = True
+        if not len(state):
+            return force, torque
+        self.hydro_force, self.hydro_torque = hydro["force"], hydro["torque"]
+        return force + hydro["force"], torque + hydro["torque"]
+
     def write_outputs(self) -> None:
         """Collective. One output time: particles.csv rows and a fields.h5 group."""
         state = self.particles
-        self.particle_writer.write(self.time, state)
+        fields = {}
+        if self.flow is not None:
+            if len(self.hydro_force) != len(state):
+                self.hydro_force, self.hydro_torque = np.zeros((len(state), 3)), np.zeros((len(state), 3))
+            fields = {"velocity": self.fluid_state.u, "pressure": self.fluid_state.p,
+                      "volume_fraction": self.volume_fraction}
+        self.particle_writer.write(self.time, state, self.hydro_force, self.hydro_torque)
         arrays = {"id": state.id, "position": state.x, "velocity": state.v, "angular_velocity": state.omega,
                   "radius": state.radius, "density": state.density}
-        self.field_writer.write(self.time, {}, arrays)
+        self.field_writer.write(self.time, fields, arrays)
 
     # -- reporting ------------------------------------------------------------------------------
     def describe(self, setup_seconds: float) -> str:
@@ -232,20 +288,53 @@ class Simulation:
             f"  particles: {len(self.particles.id)} at start, {len(self.injectors)} injection(s)",
             f"  ranks:     {self.comm.size}",
             f"  time:      0 → {run.end_time:g} s, dt = {run.dt:g} s ({steps} steps), output every {run.output_every:g} s",
+            *([self.describe_flow()] if self.flow is not None else []),
             f"  setup:     {setup_seconds:.2f} s",
         ])
 
+    def describe_flow(self) -> str:
+        """One line on the flow, with the CFL number the boundary velocities give (warns above max_cfl)."""
+        fluid, flow, run = self.case.fluid, self.flow, self.case.run
+        speed = float(np.linalg.norm(flow.u_fixed, axis=1).max(initial=0.0))
+        h = float(flow.h.min(initial=np.inf))
+        cfl = self.comm.allreduce(speed * run.dt / h, op=MPI.MAX)
+        if cfl > run.max_cfl and self.comm.rank == 0:
+            warn(self.comm, f"[run] dt = {run.dt:g} s gives a CFL number of {cfl:.2f} at the boundary velocities "
+                            f"(above max_cfl = {run.max_cfl:g}); the explicit convection may go unstable")
+        return (f"  flow:      ρ = {fluid.density:g} kg/m³, μ = {fluid.viscosity:g} Pa s, {fluid.convection} "
+                f"convection, CFL at boundary speeds {cfl:.2f}; coupling {self.case.coupling.mode}, "
+                f"{self.case.coupling.volume_fraction} volume fraction, {self.case.coupling.update} update")
+
     def summary(self, status: str, setup_seconds: float, total_seconds: float) -> dict:
         state = self.particles
-        kinetic = 0.5 * float(np.sum(state.mass * np.sum(state.v ** 2, axis=1)))
         return {
             "case": str(self.case.path), "status": status, "ranks": self.comm.size,
             "cells": self.mesh.n_global_cells, "particles": len(state.id), "particles_removed": self.removed,
             "steps": self.step, "simulated_time": self.time, "models": self.case.models(),
             "wall_seconds": {"total": total_seconds, "setup": setup_seconds, **self.times.seconds},
-            "diagnostics": {"particle_kinetic_energy": kinetic,
-                            "particle_momentum": (state.mass[:, None] * state.v).sum(axis=0)},
+            "diagnostics": self.diagnostics(),
         }
+
+    def diagnostics(self) -> dict:
+        """Collective. Conservation checks for summary.json."""
+        state = self.particles
+        result = {"particle_kinetic_energy": 0.5 * float(np.sum(state.mass * np.sum(state.v ** 2, axis=1))),
+                  "particle_momentum": (state.mass[:, None] * state.v).sum(axis=0)}
+        if self.flow is not None:
+            flow, fluid = self.flow, self.fluid_state
+            owned = slice(0, self.mesh.n_owned_cells)
+            momentum = self.fluid_density * (self.mesh.cell_volume[owned, None] * fluid.u[owned]).sum(axis=0)
+            fluxes = flow.boundary_flux(fluid)
+            result.update({
+                "fluid_kinetic_energy": flow.kinetic_energy(fluid),
+                "fluid_momentum": allreduce_sum(self.comm, momentum),
+                "max_divergence_per_second": flow.divergence_norm(fluid),
+                "boundary_volume_flux": fluxes,
+                "net_volume_flux": sum(fluxes.values()),
+                "pressure_iterations": getattr(self, "pressure_iterations", 0),
+                "final_cfl": flow.cfl(fluid, self.case.run.dt),
+            })
+        return result
 
 
 def check_finite(state, step: int, time: float) -> None:
