@@ -83,6 +83,8 @@ SCHEMA: dict[str, tuple[Key, ...]] = {
             help="nodes: the paper's share of cell vertices inside; subcell: k³ sample points"),
         Key("subcell_points", "int", 4, ">0", help="k for volume_fraction = subcell"),
         Key("substeps", "int", 1, ">0", help="particle substeps per flow step"),
+        Key("forcing_passes", "int", 3, ">0",
+            help="patch-and-diffuse passes per step (multi-direct forcing; 1: the paper's single patch)"),
         Key("update", "str", "implicit", choices=("implicit", "explicit"),
             help="implicit: stable for any density ratio; explicit: the paper's, unstable for light particles"),
     ),

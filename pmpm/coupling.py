@@ -83,6 +83,7 @@ class Coupling:
         corners = mesh.vertex_xyz[owned_vertices]
         self.cell_diameter = float(np.linalg.norm(corners.max(axis=1) - corners.min(axis=1), axis=1).max(initial=0))
         self.samples = reference_samples(mesh.cell_type, self.k) if self.rule == "subcell" else None
+        self.pending = None           # momentum exchanged by the earlier forcing passes of this step
         self.last_change = None       # for detecting a ringing explicit update
         self.ringing = None
 
@@ -134,17 +135,20 @@ class Coupling:
 
     # -- 2. exchange: drag, torque, the particle update and the patch ---------------------------
     def exchange(self, state: ParticleState, touched: Touched, u: np.ndarray, dt: float,
-                 external_force: np.ndarray, external_torque: np.ndarray, step: int = 0, time: float = 0.0):
-        """Collective. Momentum exchange of one flow step.
+                 external_force: np.ndarray, external_torque: np.ndarray, last: bool = True,
+                 step: int = 0, time: float = 0.0):
+        """Collective. Momentum exchange of one flow step (or one forcing pass of it).
 
         Sums, over ranks, the fluid mass each particle covers and its momentum deviation from the
-        particle's rigid motion, solves the particle update (module docstring), and in two-way
-        mode patches the new rigid velocity into the owned rows of ``u`` (the predicted velocity).
+        particle's rigid motion. Before the last pass (multi-direct forcing, ``pmpm.fluid``) it
+        patches the current rigid motion into ``u`` and keeps the sums; on the last pass it solves
+        the particle update (module docstring) with all passes' momentum and, in two-way mode,
+        patches the new rigid velocity into the owned rows of ``u`` (the predicted velocity).
 
         Returns
         -------
         force, torque : (n, 3) hydrodynamic force (N) and torque (N m) on each particle, such that
-            m (Vⁿ⁺¹ − Vⁿ) = dt (force + external_force) for free particles.
+            m (Vⁿ⁺¹ − Vⁿ) = dt (force + external_force) for free particles; None before the last pass.
         """
         n = len(state)
         mesh = self.mesh
@@ -165,6 +169,14 @@ class Coupling:
         sums[:, 7] = np.bincount(p, mass * (2.0 / 3.0) * np.einsum("ij,ij->i", r, r), minlength=n)
         if self.comm.size > 1:
             self.comm.Allreduce(MPI.IN_PLACE, sums, op=MPI.SUM)
+        if self.pending is None or len(self.pending) != n:
+            self.pending = np.zeros((n, 6))
+        if not last:
+            self.pending += sums[:, 1:7]
+            self.patch(u, c, alpha, rigid)
+            return None
+        sums[:, 1:7] += self.pending
+        self.pending = None
         covered, momentum, angular, moment = sums[:, 0], sums[:, 1:4], sums[:, 4:7], sums[:, 7]
 
         free = state.movable
@@ -180,11 +192,15 @@ class Coupling:
         if self.two_way:
             new_v = np.where(free[:, None], state.v + dv, state.v)
             new_omega = np.where(free[:, None], state.omega + dw, state.omega)
-            target = new_v[p] + np.cross(new_omega[p], r)
-            patch = alpha[:, None] * (target - u[c])
-            for d in range(3):
-                u[:mesh.n_owned_cells, d] += np.bincount(c, patch[:, d], minlength=mesh.n_owned_cells)
+            self.patch(u, c, alpha, new_v[p] + np.cross(new_omega[p], r))
         return force, torque
+
+    def patch(self, u, cell, alpha, target):
+        """u ← (1 − α) u + α target in the touched owned cells (eq. 1's velocity patch)."""
+        change = alpha[:, None] * (target - u[cell])
+        n_owned = self.mesh.n_owned_cells
+        for d in range(3):
+            u[:n_owned, d] += np.bincount(cell, change[:, d], minlength=n_owned)
 
     def watch_ringing(self, state, change, step, time):
         """Stop an explicit update whose velocity changes flip sign and grow (the light-particle instability)."""

@@ -32,6 +32,9 @@ from mpi4py import MPI
 from .errors import NumericalError
 from .pressure import CellKSP, PressureSolver, assemble_cell_matrix
 
+
+
+
 WALL, INLET, OUTLET, SYMMETRY = 0, 1, 2, 3
 BOUNDARY_CODES = {"wall": WALL, "inlet": INLET, "outlet": OUTLET, "symmetry": SYMMETRY}
 
@@ -203,11 +206,12 @@ class FlowSolver:
         return self.D @ face
 
     # -- the step --------------------------------------------------------------------------------
-    def step(self, state: FluidState, dt: float, source=None, patch=None, step: int = 0,
-             time: float = 0.0) -> dict:
+    def step(self, state: FluidState, dt: float, source=None, patch=None, forcing_iterations: int = 1,
+             step: int = 0, time: float = 0.0) -> dict:
         """Collective. Advance ``state`` in place by dt. ``source``: momentum source (n_local, 3) in
-        m⁴/s² (force/ρ integrated over the cell), or None. ``patch(u_star)``: called (collectively)
-        with the predicted velocity, which it may change in its owned rows. Returns diagnostics."""
+        m⁴/s² (force/ρ integrated over the cell), or None. ``patch(u_star, last)``: called (collectively)
+        with the predicted velocity, which it may change in its owned rows, ``forcing_iterations``
+        times (``last`` true on the last). Returns diagnostics."""
         rho, nu, V = self.rho, self.nu, self.volume
         u, p, flux = state.u, state.p, state.flux
         n_int = self.n_interior
@@ -234,13 +238,20 @@ class FlowSolver:
             rhs += nu * (self.D @ np.concatenate([face, face_b]))
         if source is not None:
             rhs += source
+        # implicit diffusion; with particles, multi-direct forcing: the patch's momentum becomes a
+        # source and the diffusion is solved again, so the rigid motion holds after the solve too
         u_star = u.copy()
-        for k, solver in enumerate(self._momentum_solvers(dt)):
-            column = np.ascontiguousarray(u_star[:, k])
-            solver.solve(rhs[:, k], column, step, time)
-            u_star[:, k] = column
-        if patch is not None:  # the particles' direct forcing, before the projection (pmpm.coupling)
-            patch(u_star)
+        passes = forcing_iterations if patch is not None else 1
+        for forcing_pass in range(passes):
+            for k, solver in enumerate(self._momentum_solvers(dt)):
+                column = np.ascontiguousarray(u_star[:, k])
+                solver.solve(rhs[:, k], column, step, time)
+                u_star[:, k] = column
+            if patch is not None:  # the particles' direct forcing, before the projection (pmpm.coupling)
+                before = u_star[:self.n_owned].copy()
+                patch(u_star, forcing_pass == passes - 1)
+                if forcing_pass < passes - 1:
+                    rhs[:self.n_owned] += V[:self.n_owned, None] * (u_star[:self.n_owned] - before) / dt
         self.mesh.update_ghosts(u_star)
 
         # 2. face flux with the Rhie–Chow pressure term

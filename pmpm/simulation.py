@@ -239,13 +239,15 @@ class Simulation:
             touched = coupling.locate(state)
         hydro = {}
 
-        def patch(u_star):
+        def patch(u_star, last):
             with Timer(self.times, "coupling"):
-                hydro["force"], hydro["torque"] = coupling.exchange(state, touched, u_star, dt, force, torque,
-                                                                    self.step, self.time)
+                result = coupling.exchange(state, touched, u_star, dt, force, torque, last, self.step, self.time)
+                if last:
+                    hydro["force"], hydro["torque"] = result
 
         with Timer(self.times, "flow"):
             info = self.flow.step(self.fluid_state, dt, patch=patch if len(state) else None,
+                                  forcing_iterations=self.case.coupling.forcing_passes,
                                   step=self.step, time=self.time)
         self.pressure_iterations = getattr(self, "pressure_iterations", 0) + info["pressure_iterations"]
         self.volume_fraction[:self.mesh.n_owned_cells] = coupling.volume_fraction(touched)
