@@ -318,7 +318,9 @@ def build_case(raw: dict, path: Path) -> Case:
         box=box,
         fluid=table("fluid", "fluid"),
         boundaries=boundaries,
-        coupling=table("coupling", "coupling"),
+        # a flow with particles is coupled by default
+        coupling=table("coupling", "coupling") or (Section(check_table({}, SCHEMA["coupling"], "coupling", name))
+                                                   if "fluid" in raw else None),
         particles=particles,
         particles_add=particles_add or (),
         collisions=table("collisions", "collisions"),
@@ -417,6 +419,11 @@ def check_consistency(case: Case) -> None:
     run = case.run
     if run.output_every is None:
         object.__setattr__(case.run, "values", {**run.values, "output_every": run.end_time / 20})
+    # declared so that the reference lists them, refused until they work (no silent no-ops)
+    if run.checkpoint_every is not None:
+        raise CaseError(f"{name}: [run] checkpoint_every: checkpoints are not available yet in this version")
+    if run.adaptive_cfl:
+        raise CaseError(f"{name}: [run] adaptive_cfl: an adaptive time step is not available yet; set a fixed dt")
     if case.box is not None:
         lower, upper = case.box.lower, case.box.upper
         if not all(u > l for l, u in zip(lower, upper)):

@@ -26,6 +26,8 @@ import heapq
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy import sparse
+from scipy.sparse.linalg import spsolve
 from scipy.spatial import cKDTree
 
 from .errors import CaseError
@@ -33,6 +35,8 @@ from .particles import FIXED, FREE, ParticleState
 
 DEFAULT_RESTITUTION, DEFAULT_FRICTION, DEFAULT_ROLLING_FRICTION = 0.9, 0.3, 0.0
 APPROACH_TOL = 1e-9   # relative: approach speeds below 1e-9 |u| are round-off, not contacts
+TOUCH_TOL = 1e-9      # relative: spheres this close count as touching
+CONTACT_TOL = 1e-6    # relative: resting contacts are those this close at the start of a step
 GAP_TOL = 1e-7        # relative to the radius: a predicted wall contact further than this is rescheduled
 
 
@@ -64,6 +68,7 @@ class Walls:
     rigid: np.ndarray
     deposition: np.ndarray
     names: tuple = ()  # boundary names, indexed by ``boundary``
+    _search: tuple | None = field(default=None, init=False, repr=False, compare=False)
 
     def __len__(self) -> int:
         return len(self.boundary)
@@ -81,7 +86,7 @@ class Walls:
         m = len(tri)
         a, b, c = tri[:, 0].copy(), tri[:, 1].copy(), tri[:, 2].copy()
         if normal is None:
-            normal = np.cross(b - a, c - a)
+            normal = cross(b - a, c - a)
         normal = np.broadcast_to(np.asarray(normal, float), (m, 3))
         normal = normal / np.linalg.norm(normal, axis=1, keepdims=True)
 
@@ -96,7 +101,11 @@ class Walls:
     @property
     def moves(self) -> np.ndarray:
         """(m,) bool: rigid triangles that actually move."""
-        return self.rigid & ((np.abs(self.velocity).sum(1) > 0) | (np.abs(self.angular_velocity).sum(1) > 0))
+        return self.moving(slice(None))
+
+    def moving(self, k) -> np.ndarray:
+        """Bool per triangle of ``k``: rigid and with a velocity or an angular velocity."""
+        return self.rigid[k] & (self.velocity[k].any(-1) | self.angular_velocity[k].any(-1))
 
     def geometry_at(self, k: np.ndarray, t) -> tuple:
         """Vertices, normal and rotation centre of triangles ``k`` at time ``t`` into the step.
@@ -104,7 +113,7 @@ class Walls:
         Rigid triangles rotate by Ω t about their centre (Rodrigues) and translate by V t.
         """
         a, b, c, n, ctr = self.a[k], self.b[k], self.c[k], self.normal[k], self.center[k]
-        moving = self.moves[k]
+        moving = self.moving(k)
         if not moving.any():
             return a, b, c, n, ctr
         t = np.broadcast_to(np.asarray(t, float), k.shape)[moving]
@@ -123,15 +132,37 @@ class Walls:
         k = np.flatnonzero(self.moves)
         if len(k):
             self.a[k], self.b[k], self.c[k], self.normal[k], self.center[k] = self.geometry_at(k, dt)
+            self._search = None
+
+    def search_tree(self, dt: float) -> tuple:
+        """Centroids (m, 3), bounding radii (m,) and the distance each triangle may move in a step
+        of ``dt`` (m,), and a k-d tree of the centroids; kept until the rigid triangles move."""
+        key = (float(dt), len(self))
+        if self._search is None or self._search[0] != key:
+            centroid = (self.a + self.b + self.c) / 3.0
+            size = np.max([np.linalg.norm(v - centroid, axis=1) for v in (self.a, self.b, self.c)], axis=0)
+            arm = np.max([np.linalg.norm(v - self.center, axis=1) for v in (self.a, self.b, self.c)], axis=0)
+            travel = np.where(self.moves, np.linalg.norm(self.velocity, axis=1)
+                              + np.linalg.norm(self.angular_velocity, axis=1) * arm, 0.0) * dt
+            self._search = (key, centroid, size + travel, travel, cKDTree(centroid))
+        return self._search[1:]
 
     def surface_velocity(self, k: np.ndarray, points: np.ndarray, centre: np.ndarray) -> np.ndarray:
         """(len(k), 3) wall velocity at ``points``: V + Ω × (p − centre); a surface-moving wall
         keeps its place, so its normal component is dropped."""
-        u = self.velocity[k] + np.cross(self.angular_velocity[k], points - centre)
+        u = self.velocity[k] + cross(self.angular_velocity[k], points - centre)
         surface = ~self.rigid[k]
         n = self.normal[k]
         u[surface] -= np.sum(u[surface] * n[surface], axis=1, keepdims=True) * n[surface]
         return u
+
+
+def cross(a, b) -> np.ndarray:
+    """a × b for 3-vectors or (k, 3) rows (np.cross is slow on small arrays)."""
+    a, b = np.asarray(a), np.asarray(b)
+    a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
+    b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
+    return np.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1)
 
 
 def rodrigues(axis_rate: np.ndarray, t: np.ndarray):
@@ -142,7 +173,7 @@ def rodrigues(axis_rate: np.ndarray, t: np.ndarray):
     cos, sin = np.cos(angle)[:, None], np.sin(angle)[:, None]
 
     def rotate(vec):
-        return (vec * cos + np.cross(unit, vec) * sin
+        return (vec * cos + cross(unit, vec) * sin
                 + unit * np.sum(unit * vec, axis=1, keepdims=True) * (1 - cos))
     return rotate
 
@@ -202,6 +233,7 @@ class CollisionSettings:
     rest_speed: float = 0.0
     max_events_per_particle: int = 50
     min_events: int = 1000
+    max_sweeps: int = 500
 
 
 def collision_settings(case) -> CollisionSettings:
@@ -262,19 +294,21 @@ def first_root(d, w, radius) -> np.ndarray:
     return tau
 
 
-def pair_contact_times(dx, dv, contact, horizon) -> np.ndarray:
+def pair_contact_times(dx, dv, contact, horizon, quiet=0.0) -> np.ndarray:
     """Eq. 5-7: first τ in [0, horizon] with |dx + dv τ| = contact; 0 for touching pairs that
-    approach; inf where none. dx = x_i − x_j, dv = v_i − v_j (k, 3), contact = r_i + r_j (k,)."""
+    approach faster than ``quiet`` (m/s); inf where none. dx = x_i − x_j, dv = v_i − v_j (k, 3),
+    contact = r_i + r_j (k,)."""
     tau = first_root(dx, dv, contact)
     dist = np.linalg.norm(dx, axis=1)
     closing = -np.sum(dx * dv, 1) / np.maximum(dist, 1e-300)
-    touching = (dist <= contact) & (closing > APPROACH_TOL * np.linalg.norm(dv, axis=1))
-    tau[touching] = 0.0
+    touching = dist <= contact * (1 + TOUCH_TOL)
+    tau[touching] = np.where(closing[touching] > np.maximum(quiet, APPROACH_TOL * np.linalg.norm(dv[touching], axis=1)),
+                             0.0, np.inf)
     tau[tau > horizon] = np.inf
     return tau
 
 
-def wall_contact_times(p, w, radius, a, b, c, n, horizon) -> np.ndarray:
+def wall_contact_times(p, w, radius, a, b, c, n, horizon, quiet=0.0) -> np.ndarray:
     """First τ in [0, horizon] at which a sphere (centre p + w τ, w relative to the triangle)
     touches triangle (a, b, c) from its domain side (normal n); 0 if it touches now and
     approaches; inf where none. All (k, 3) or (k,)."""
@@ -287,9 +321,9 @@ def wall_contact_times(p, w, radius, a, b, c, n, horizon) -> np.ndarray:
     gap = np.where(face, height, dist) - radius
     behind = (height < -radius) | (~face & (height < 0))
     closing = -np.sum(w * direction, 1)
-    touching = (gap <= 0) & ~behind
+    touching = (gap <= TOUCH_TOL * radius) & ~behind
     tau = np.full(k, np.inf)
-    tau[touching & (closing > APPROACH_TOL * np.linalg.norm(w, axis=1))] = 0.0
+    tau[touching & (closing > np.maximum(quiet, APPROACH_TOL * np.linalg.norm(w, axis=1)))] = 0.0
     far = np.flatnonzero(~touching & ~behind)
     if len(far):
         tau[far] = swept_triangle_times(p[far], w[far], radius[far], a[far], b[far], c[far], n[far], height[far])
@@ -330,9 +364,9 @@ def swept_triangle_times(p, w, radius, a, b, c, n, height) -> np.ndarray:
 def inside_triangle(x, a, b, c, n) -> np.ndarray:
     """(k,) bool: the in-plane point x lies in triangle (a, b, c) (edges included)."""
     tol = -1e-12
-    return ((np.sum(np.cross(b - a, x - a) * n, 1) >= tol * np.sum(np.cross(b - a, c - a) * n, 1))
-            & (np.sum(np.cross(c - b, x - b) * n, 1) >= tol * np.sum(np.cross(b - a, c - a) * n, 1))
-            & (np.sum(np.cross(a - c, x - c) * n, 1) >= tol * np.sum(np.cross(b - a, c - a) * n, 1)))
+    return ((np.sum(cross(b - a, x - a) * n, 1) >= tol * np.sum(cross(b - a, c - a) * n, 1))
+            & (np.sum(cross(c - b, x - b) * n, 1) >= tol * np.sum(cross(b - a, c - a) * n, 1))
+            & (np.sum(cross(a - c, x - c) * n, 1) >= tol * np.sum(cross(b - a, c - a) * n, 1)))
 
 
 def contact_impulse(u, n, inv_mass, k_t, e, mu) -> tuple[np.ndarray, bool]:
@@ -372,14 +406,23 @@ def advance_with_collisions(state: ParticleState, walls: Walls | None, dt: float
 
 
 class EventLoop:
-    """One step's contacts, in time order (see ``advance_with_collisions``).
+    """One step's contacts (see ``advance_with_collisions``).
 
     Notes
     -----
-    Each particle holds its position at its own last event time (``clock``); a counter per
-    particle invalidates queued events once its velocity changes. Candidates come from a k-d tree
-    of the step's initial positions, searched with a margin that bounds how far any particle can
-    move in the step (the largest speed seen so far × dt).
+    1. Resting contacts: the contacts touching at the start of the step that approach slower than
+       ``rest_speed`` are solved together, inelastic with Coulomb friction, by Jacobi sweeps over
+       the contact list with mass splitting (each body's mass shared among its contacts), until
+       the velocity changes fall below 1e-4 ``rest_speed``. A stack or a bed thus settles in a few
+       vectorised sweeps instead of thousands of tiny events.
+    2. Impacts, in time order: each particle holds its position at its own last event time
+       (``clock``); a counter per particle invalidates queued events once its velocity changes.
+       Candidates come from a k-d tree of the step's initial positions, searched with a margin
+       that bounds how far any particle can move in the step (the largest speed seen × dt).
+       Touching contacts approaching slower than 1e-3 ``rest_speed`` are left to the next step's
+       resting-contact solve.
+    3. Past the event budget, the contacts left are solved as in 1 and everything flies freely to
+       the end of the step.
     """
 
     def __init__(self, state, walls, dt, settings):
@@ -391,33 +434,199 @@ class EventLoop:
         self.x0 = state.x.copy()
         self.clock = np.zeros(n)
         self.count = np.zeros(n, np.int64)
-        mass = state.mass
-        self.inv_mass = np.where(self.free, 1.0 / np.where(self.free, mass, 1.0), 0.0)
-        self.r2_over_inertia = np.where(self.free, 2.5 * self.inv_mass, 0.0)  # r²/I = 5/(2m)
         self.radius = state.radius
+        self.inv_mass = np.zeros(n)
+        self.inv_mass[self.free] = 1.0 / state.mass[self.free]
+        self.inv_inertia = 2.5 * self.inv_mass / np.maximum(self.radius, 1e-300) ** 2  # 1/I, I = 2/5 m r²
         self.r_max = float(self.radius.max()) if n else 0.0
-        self.speed = float(np.linalg.norm(self.v, axis=1).max()) if n else 0.0
-        self.tree = cKDTree(self.x0) if n else None
+        self.speed = float(np.sqrt((self.v ** 2).sum(1).max())) if n else 0.0
+        self.tree = cKDTree(self.x0) if n > 1 else None
+        self.quiet = 1e-3 * settings.rest_speed
         self.heap, self.seq = [], 0
-        self.stats = {"particle_collisions": 0, "wall_collisions": 0, "events": 0, "capped": False,
-                      "deposited": 0}
+        self.stats = {"particle_collisions": 0, "wall_collisions": 0, "resting_contacts": 0, "events": 0,
+                      "capped": False, "deposited": 0}
         self.max_events = max(settings.max_events_per_particle * n, settings.min_events)
-        self.has_walls = walls is not None and len(walls) > 0
+        self.has_walls = walls is not None and len(walls) > 0 and bool(self.free.any())
         if self.has_walls:
-            self.prepare_walls()
+            self.wall_centroid, self.wall_reach, self.wall_travel, self.wall_tree = walls.search_tree(self.dt)
 
-    # -- setup ------------------------------------------------------------------------------------
-    def prepare_walls(self):
-        w = self.walls
-        centroid = (w.a + w.b + w.c) / 3.0
-        reach = np.max([np.linalg.norm(v - centroid, axis=1) for v in (w.a, w.b, w.c)], axis=0)
-        arm = np.max([np.linalg.norm(v - w.center, axis=1) for v in (w.a, w.b, w.c)], axis=0)
-        wall_speed = np.where(w.moves, np.linalg.norm(w.velocity, axis=1)
-                              + np.linalg.norm(w.angular_velocity, axis=1) * arm, 0.0)
-        self.wall_reach = reach + wall_speed * self.dt  # bounding sphere of the triangle over the step
-        self.wall_tree = cKDTree(centroid)
-        self.wall_centroid = centroid
+    # -- the step ---------------------------------------------------------------------------------
+    def run(self) -> dict:
+        if len(self.state) == 0:
+            return self.stats
+        if self.settings.rest_speed > 0:
+            self.settle()
+        self.schedule_all()
+        while self.heap:
+            t, _, kind, i, j, cnt_i, cnt_j = heapq.heappop(self.heap)
+            if cnt_i != self.count[i] or (kind == 0 and cnt_j != self.count[j]):
+                continue
+            if self.stats["events"] >= self.max_events:
+                self.stats["capped"] = True
+                self.advance_to(np.arange(len(self.state)), t)
+                self.heap.clear()
+                contacts = self.touching_contacts(t)
+                self.solve_inelastic(contacts, bias_time=None)
+                break
+            self.stats["events"] += 1
+            if kind == 0:
+                self.particle_contact(t, i, j)
+            else:
+                self.wall_contact(t, i, j)
+        self.finish()
+        return self.stats
 
+    def finish(self):
+        """Every particle to the end of the step; velocities back into the state; walls move."""
+        state = self.state
+        self.advance_to(np.arange(len(state)), self.dt)
+        free = state.motion == FREE  # deposited ones included: they now rest
+        state.v[free] = self.v[free]
+        if self.walls is not None and len(self.walls):
+            self.walls.move_rigid(self.dt)
+
+    # -- resting contacts, all at once ------------------------------------------------------------
+    def touching_contacts(self, t) -> dict:
+        """Every touching particle–particle and particle–wall contact at time t (all clocks at t).
+
+        Returns arrays: i, j (j = n for a wall), normal (towards i), arm_i, arm_j (centre to contact
+        point), u_wall, mu, mu_r, gap (m), wall (bool), k (triangle, −1 for pairs).
+        """
+        state, n = self.state, len(self.state)
+        x, r = state.x, self.radius
+        parts = []
+        if n > 1:
+            pairs = self.tree.query_pairs(2 * self.r_max * (1 + CONTACT_TOL) + 2 * self.speed * t,
+                                          output_type="ndarray")
+            i, j = pairs[:, 0], pairs[:, 1]
+            dx = x[i] - x[j]
+            dist = np.sqrt((dx * dx).sum(1))
+            gap = dist - (r[i] + r[j])
+            keep = (gap <= CONTACT_TOL * (r[i] + r[j])) & (self.free[i] | self.free[j]) & (dist > 0)
+            i, j, dx, dist, gap = i[keep], j[keep], dx[keep], dist[keep], gap[keep]
+            normal = dx / dist[:, None]
+            m = len(i)
+            parts.append(dict(i=i, j=j, normal=normal, arm_i=-r[i, None] * normal, arm_j=r[j, None] * normal,
+                              u_wall=np.zeros((m, 3)), mu=np.full(m, self.settings.friction), mu_r=np.zeros(m),
+                              gap=gap, wall=np.zeros(m, bool), k=np.full(m, -1)))
+        if self.has_walls:
+            p, k = self.wall_candidates(np.flatnonzero(self.free), r * CONTACT_TOL)
+            if len(p):
+                a, b, c, nf, ctr = self.walls.geometry_at(k, t)
+                q, face = closest_points_on_triangles(x[p], a, b, c)
+                sep = x[p] - q
+                height = ((x[p] - a) * nf).sum(1)
+                dist = np.sqrt((sep * sep).sum(1))
+                gap = np.where(face, height, dist) - r[p]
+                keep = (gap <= CONTACT_TOL * r[p]) & (height >= np.where(face, -r[p], 0.0)) & (face | (dist > 0))
+                p, k, q, face, sep, dist, gap, nf, ctr = (arr[keep] for arr in (p, k, q, face, sep, dist, gap, nf, ctr))
+                normal = np.where(face[:, None], nf, sep / np.maximum(dist, 1e-300)[:, None])
+                m = len(p)
+                parts.append(dict(i=p, j=np.full(m, n), normal=normal, arm_i=-r[p, None] * normal,
+                                  arm_j=np.zeros((m, 3)), u_wall=self.walls.surface_velocity(k, q, ctr),
+                                  mu=self.walls.friction[k], mu_r=self.walls.rolling_friction[k], gap=gap,
+                                  wall=np.ones(m, bool), k=k))
+        if not parts:
+            return {}
+        return {key: np.concatenate([part[key] for part in parts]) for key in parts[0]}
+
+    def settle(self):
+        """Solve the resting contacts of the step's start together (Notes, 1)."""
+        contacts = self.touching_contacts(0.0)
+        if not contacts or len(contacts["i"]) == 0:
+            return
+        i, j = contacts["i"], contacts["j"]
+        n = len(self.state)
+        u = self.relative_velocity(contacts)
+        closing = -(u * contacts["normal"]).sum(1)
+        slow = closing < self.settings.rest_speed
+        contacts = {key: value[slow] for key, value in contacts.items()}
+        # touching a deposition wall or a deposited particle: deposit
+        i, j, k = contacts["i"], contacts["j"], contacts["k"]
+        deposited = np.append(self.state.deposited, False)
+        sticky = np.where(contacts["wall"], self.walls.deposition[k] if self.has_walls else False, deposited[j])
+        for idx in np.unique(i[sticky & self.free[i]]):
+            self.deposit(idx, 0.0, reschedule=False)
+        if len(contacts["i"]):
+            self.stats["resting_contacts"] += len(contacts["i"])
+            self.solve_inelastic(contacts, bias_time=self.dt)
+
+    def relative_velocity(self, c) -> np.ndarray:
+        """(m, 3) contact-point velocity of body i relative to body j (row n: the wall)."""
+        v = np.vstack([self.v, np.zeros((1, 3))])
+        w = np.vstack([self.state.omega, np.zeros((1, 3))])
+        i, j = c["i"], c["j"]
+        return v[i] + cross(w[i], c["arm_i"]) - v[j] - cross(w[j], c["arm_j"]) - c["u_wall"]
+
+    def solve_inelastic(self, c, bias_time):
+        """Solve contacts ``c`` together: inelastic (e = 0), sticking unless the impulse leaves the
+        Coulomb cone (then sliding with μ λ_n), separating ones dropped. Contacts that share no
+        free particle with another are solved in closed form; the others by an active-set
+        iteration on W Λ = target − u, W = J M⁻¹ Jᵀ (a sparse direct solve). Then rolling
+        friction at the wall contacts that stick. With ``bias_time``, overlapping contacts
+        separate at 0.2 overlap / bias_time, so round-off never accumulates into sinking."""
+        c = unique_wall_contacts(c)
+        m, n = len(c["i"]), len(self.state)
+        if m == 0:
+            return
+        i, j, normal, mu = c["i"], c["j"], c["normal"], c["mu"]
+        target = np.zeros(m) if bias_time is None else 0.2 * np.maximum(-c["gap"], 0.0) / bias_time
+        u = self.relative_velocity(c)
+        inv_m = np.append(self.inv_mass, 0.0)
+        inv_i = np.append(self.inv_inertia, 0.0)
+        free = inv_m > 0
+        uses = np.bincount(i[free[i]], minlength=n + 1) + np.bincount(j[free[j]], minlength=n + 1)
+        alone = (uses[i] <= 1) & (uses[j] <= 1)
+        impulse, sticking = np.zeros((m, 3)), np.zeros(m, bool)
+        if alone.any():
+            w_n = inv_m[i[alone]] + inv_m[j[alone]]
+            k_t = (w_n + inv_i[i[alone]] * (c["arm_i"][alone] ** 2).sum(1)
+                   + inv_i[j[alone]] * (c["arm_j"][alone] ** 2).sum(1))
+            impulse[alone], sticking[alone] = isolated_impulses(u[alone], normal[alone], w_n, k_t, target[alone],
+                                                                mu[alone])
+        group = np.flatnonzero(~alone)
+        if len(group):
+            sub = {key: value[group] for key, value in c.items()}
+            impulse[group], sticking[group] = self.coupled_impulses(sub, u[group], target[group])
+        self.v += bincount3(i, impulse * inv_m[i, None], n + 1)[:n] - bincount3(j, impulse * inv_m[j, None], n + 1)[:n]
+        self.state.omega += (bincount3(i, cross(c["arm_i"], impulse) * inv_i[i, None], n + 1)[:n]
+                             - bincount3(j, cross(c["arm_j"], impulse) * inv_i[j, None], n + 1)[:n])
+        lam_n = (impulse * normal).sum(1)
+        rolling = c["wall"] & (c["mu_r"] > 0) & (lam_n > 0) & sticking
+        for idx in np.flatnonzero(rolling):  # the wall contacts of rolling particles
+            self.roll_resistance(i[idx], normal[idx], c["u_wall"][idx], lam_n[idx], c["mu_r"][idx])
+        touched = np.concatenate([i, j[j < n]])
+        self.speed = max(self.speed, float(np.sqrt((self.v[touched] ** 2).sum(1).max())))
+
+    def coupled_impulses(self, c, u, target):
+        """(m, 3) impulses and (m,) sticking flags of contacts that share particles."""
+        m, n = len(c["i"]), len(self.state)
+        normal, mu = c["normal"], c["mu"]
+        jac = contact_jacobian(c, self.inv_mass > 0, n)
+        inv_m6 = np.repeat(np.column_stack([self.inv_mass, self.inv_inertia]), 3, axis=1).ravel()
+        W = (jac @ sparse.diags(inv_m6) @ jac.T).tocsr()
+        status = np.zeros(m, np.int8)  # 0 sticking, 1 sliding, 2 separating
+        direction = np.zeros((m, 3))   # friction direction of the sliding ones
+        impulse = np.zeros((m, 3))
+        for _ in range(20):
+            impulse = solve_active_set(W, u, normal, target, mu, status, direction)
+            lam_n = (impulse * normal).sum(1)
+            tang = impulse - lam_n[:, None] * normal
+            size = np.sqrt((tang * tang).sum(1))
+            after = u + (W @ impulse.ravel()).reshape(m, 3)
+            approaching = (after * normal).sum(1) < target - 1e-9 * (np.abs(u).max() + target.max())
+            new = status.copy()
+            new[(status < 2) & (lam_n < 0)] = 2
+            slide = (status == 0) & (lam_n >= 0) & (size > mu * lam_n * (1 + 1e-9))
+            new[slide] = 1
+            direction[slide] = tang[slide] / size[slide, None]
+            new[(status == 2) & approaching] = 0
+            if np.array_equal(new, status):
+                break
+            status = new
+        return impulse, status == 0
+
+    # -- impacts, in time order -------------------------------------------------------------------
     def push(self, times, kind, i, others, start):
         """Queue the finite contact times (relative to ``start``) of particle(s) i with others."""
         fin = np.isfinite(times)
@@ -432,113 +641,107 @@ class EventLoop:
             heapq.heappush(self.heap, (entry[0], self.seq, kind, *entry[1:]))
 
     def position(self, idx, t):
-        return self.state.x[idx] + self.v[idx] * (t - self.clock[idx])[..., None]
-
-    def schedule_all(self):
-        """The first contacts of every particle, vectorised over candidate pairs."""
-        n = len(self.state)
-        if n == 0:
-            return
-        if n > 1:
-            pairs = self.tree.query_pairs(2 * self.r_max + 2 * self.speed * self.dt, output_type="ndarray")
-            i, j = pairs[:, 0], pairs[:, 1]
-            keep = self.free[i] | self.free[j]
-            i, j = i[keep], j[keep]
-            dx, dv = self.x0[i] - self.x0[j], self.v[i] - self.v[j]
-            contact = self.radius[i] + self.radius[j]
-            near = np.linalg.norm(dx, axis=1) <= contact + np.linalg.norm(dv, axis=1) * self.dt
-            i, j = i[near], j[near]
-            times = pair_contact_times(dx[near], dv[near], contact[near], self.dt)
-            self.push(times, 0, i, j, 0.0)
-        if self.has_walls:
-            mobile = np.flatnonzero(self.free)
-            if len(mobile):
-                self.push_wall_events(mobile, 0.0)
-
-    def schedule(self, i, t):
-        """Recompute particle i's contacts from time t (its velocity just changed)."""
-        horizon = self.dt - t
-        if horizon <= 0:
-            return
-        x_i = self.state.x[i]
-        reach = self.radius[i] + self.r_max + self.speed * self.dt + np.linalg.norm(self.v[i]) * horizon
-        nb = np.asarray(self.tree.query_ball_point(x_i, reach), dtype=np.int64)
-        nb = nb[(nb != i) & (self.free[i] | self.free[nb])]
-        if len(nb):
-            times = pair_contact_times(x_i - self.position(nb, t), self.v[i] - self.v[nb],
-                                       self.radius[i] + self.radius[nb], horizon)
-            self.push(times, 0, i, nb, t)
-        if self.has_walls and self.free[i]:
-            self.push_wall_events(np.array([i]), t)
-
-    def push_wall_events(self, particles, t):
-        """Queue the wall contacts of ``particles`` (all at their clock = t) from time t."""
-        horizon = self.dt - t
-        x = self.state.x[particles]
-        reach = self.radius[particles] + np.linalg.norm(self.v[particles], axis=1) * horizon
-        found = self.wall_tree.query_ball_point(x, reach + self.wall_reach.max())
-        sizes = np.fromiter((len(f) for f in found), np.int64, len(found))
-        if sizes.sum() == 0:
-            return
-        row = np.repeat(np.arange(len(particles)), sizes)
-        k = np.concatenate([np.asarray(f, np.int64) for f in found])
-        near = np.linalg.norm(x[row] - self.wall_centroid[k], axis=1) <= reach[row] + self.wall_reach[k]
-        row, k = row[near], k[near]
-        i = particles[row]
-        a, b, c, n, ctr = self.walls.geometry_at(k, t)
-        p = x[row]
-        q, _ = closest_points_on_triangles(p, a, b, c)
-        u_wall = np.where(self.walls.moves[k][:, None], self.walls.surface_velocity(k, q, ctr), 0.0)
-        times = wall_contact_times(p, self.v[i] - u_wall, self.radius[i], a, b, c, n, horizon)
-        self.push(times, 1, i, k, t)
-
-    # -- the loop ---------------------------------------------------------------------------------
-    def run(self) -> dict:
-        self.schedule_all()
-        while self.heap:
-            t, _, kind, i, j, cnt_i, cnt_j = heapq.heappop(self.heap)
-            if cnt_i != self.count[i] or (kind == 0 and cnt_j != self.count[j]):
-                continue
-            if self.stats["events"] >= self.max_events:
-                self.stats["capped"] = True
-                self.finish_inelastic(t)
-                break
-            self.stats["events"] += 1
-            if kind == 0:
-                self.particle_contact(t, i, j)
-            else:
-                self.wall_contact(t, i, j)
-        self.finish()
-        return self.stats
+        return self.state.x[idx] + self.v[idx] * np.reshape(t - self.clock[idx], np.shape(idx) + (1,))
 
     def advance_to(self, idx, t):
         self.state.x[idx] = self.position(idx, t)
         self.clock[idx] = t
 
+    def schedule_all(self):
+        """The first contacts of every particle, vectorised over candidate pairs."""
+        if self.tree is not None:
+            pairs = self.tree.query_pairs(2 * self.r_max + 2 * self.speed * self.dt, output_type="ndarray")
+            i, j = pairs[:, 0], pairs[:, 1]
+            keep = self.free[i] | self.free[j]
+            i, j = i[keep], j[keep]
+            dx, dv = self.state.x[i] - self.state.x[j], self.v[i] - self.v[j]
+            contact = self.radius[i] + self.radius[j]
+            near = np.sqrt((dx * dx).sum(1)) <= contact + np.sqrt((dv * dv).sum(1)) * self.dt
+            times = pair_contact_times(dx[near], dv[near], contact[near], self.dt, self.quiet)
+            self.push(times, 0, i[near], j[near], 0.0)
+        if self.has_walls:
+            self.push_wall_events(np.flatnonzero(self.free), 0.0)
+
+    def schedule(self, i, t):
+        """Recompute particle i's contacts from time t (its velocity just changed at t)."""
+        horizon = self.dt - t
+        if horizon <= 0:
+            return
+        if self.tree is not None:
+            x_i = self.state.x[i]
+            reach = self.radius[i] + self.r_max + self.speed * self.dt + np.sqrt(self.v[i] @ self.v[i]) * horizon
+            nb = np.asarray(self.tree.query_ball_point(x_i, reach), dtype=np.int64)
+            nb = nb[(nb != i) & (self.free[i] | self.free[nb])]
+            if len(nb):
+                times = pair_contact_times(x_i - self.position(nb, t), self.v[i] - self.v[nb],
+                                           self.radius[i] + self.radius[nb], horizon, self.quiet)
+                self.push(times, 0, i, nb, t)
+        if self.has_walls and self.free[i]:
+            self.push_wall_events(np.array([i]), t)
+
+    def wall_candidates(self, particles, travel):
+        """(particle, triangle) index pairs that may touch after moving ``travel`` (per particle):
+        bounding spheres that meet, and a plane within reach on the domain side."""
+        none = np.zeros(0, np.int64)
+        if len(particles) == 0:
+            return none, none
+        x = self.state.x[particles]
+        reach = self.radius[particles] + np.broadcast_to(travel, len(self.radius))[particles]
+        found = self.wall_tree.query_ball_point(x, reach + self.wall_reach.max())
+        sizes = np.fromiter((len(f) for f in found), np.int64, len(found))
+        if sizes.sum() == 0:
+            return none, none
+        row = np.repeat(np.arange(len(particles)), sizes)
+        k = np.fromiter((t for f in found for t in f), np.int64, int(sizes.sum()))
+        d = x[row] - self.wall_centroid[k]
+        height = (d * self.walls.normal[k]).sum(1)  # the centroid lies in the plane
+        near = ((np.sqrt((d * d).sum(1)) <= reach[row] + self.wall_reach[k])
+                & (height <= reach[row] + self.wall_travel[k])
+                & (height >= -self.radius[particles[row]] - self.wall_travel[k]))
+        return particles[row[near]], k[near]
+
+    def push_wall_events(self, particles, t):
+        """Queue the wall contacts of ``particles`` (all at their clock = t) from time t."""
+        horizon = self.dt - t
+        speed = np.sqrt((self.v * self.v).sum(1))
+        i, k = self.wall_candidates(particles, speed * horizon)
+        if len(i) == 0:
+            return
+        a, b, c, n, ctr = self.walls.geometry_at(k, t)
+        p = self.state.x[i]
+        moves = self.walls.moving(k)
+        u_wall = np.zeros((len(k), 3))
+        if moves.any():
+            q, _ = closest_points_on_triangles(p[moves], a[moves], b[moves], c[moves])
+            u_wall[moves] = self.walls.surface_velocity(k[moves], q, ctr[moves])
+        times = wall_contact_times(p, self.v[i] - u_wall, self.radius[i], a, b, c, n, horizon, self.quiet)
+        self.push(times, 1, i, k, t)
+
     def changed(self, idx, t):
         """Particle idx has a new velocity at t: invalidate and recompute its contacts."""
         self.count[idx] += 1
-        self.speed = max(self.speed, float(np.linalg.norm(self.v[idx])))
+        self.speed = max(self.speed, float(np.sqrt(self.v[idx] @ self.v[idx])))
         self.schedule(idx, t)
 
-    def deposit(self, i, t):
+    def deposit(self, i, t, reschedule=True):
         self.v[i] = 0.0
         self.state.omega[i] = 0.0
         self.state.deposited[i] = True
         self.free[i] = False
-        self.inv_mass[i] = self.r2_over_inertia[i] = 0.0
+        self.inv_mass[i] = self.inv_inertia[i] = 0.0
         self.stats["deposited"] += 1
-        self.changed(i, t)
+        if reschedule:
+            self.changed(i, t)
 
     def particle_contact(self, t, i, j):
         state = self.state
         self.advance_to(np.array([i, j]), t)
         dx = state.x[i] - state.x[j]
-        n = dx / np.linalg.norm(dx)
+        n = dx / np.sqrt(dx @ dx)
         arm_i, arm_j = -self.radius[i] * n, self.radius[j] * n
-        u = (self.v[i] + np.cross(state.omega[i], arm_i)) - (self.v[j] + np.cross(state.omega[j], arm_j))
+        u = (self.v[i] + cross(state.omega[i], arm_i)) - (self.v[j] + cross(state.omega[j], arm_j))
         closing = -float(u @ n)
-        if closing <= APPROACH_TOL * np.linalg.norm(u):
+        if closing <= APPROACH_TOL * np.sqrt(u @ u):
             return
         self.stats["particle_collisions"] += 1
         if state.deposited[j] and self.free[i]:
@@ -548,12 +751,12 @@ class EventLoop:
         s = self.settings
         e = s.restitution if closing >= s.rest_speed else 0.0
         inv_mass = self.inv_mass[i] + self.inv_mass[j]
-        k_t = inv_mass + self.r2_over_inertia[i] + self.r2_over_inertia[j]
+        k_t = inv_mass + self.inv_inertia[i] * self.radius[i] ** 2 + self.inv_inertia[j] * self.radius[j] ** 2
         J, _ = contact_impulse(u, n, inv_mass, k_t, e, s.friction)
         for idx, arm, sign in ((i, arm_i, 1.0), (j, arm_j, -1.0)):
             if self.free[idx]:
                 self.v[idx] += sign * self.inv_mass[idx] * J
-                state.omega[idx] += sign * (2.5 * self.inv_mass[idx] / self.radius[idx] ** 2) * np.cross(arm, J)
+                state.omega[idx] += sign * self.inv_inertia[idx] * cross(arm, J)
         for idx in (i, j):
             if self.free[idx]:
                 self.changed(idx, t)
@@ -566,18 +769,18 @@ class EventLoop:
         x = state.x[i:i + 1]
         q, face = closest_points_on_triangles(x, a, b, c)
         sep = (x - q)[0]
-        dist = float(np.linalg.norm(sep))
+        dist = float(np.sqrt(sep @ sep))
         n = n_face[0] if face[0] else sep / dist
         gap = (float(sep @ n_face[0]) if face[0] else dist) - self.radius[i]
-        if gap > GAP_TOL * self.radius[i]:  # a moving wall's linearised path missed: look again
+        if gap > GAP_TOL * self.radius[i]:  # a rotating wall's linearised path missed: look again
             self.count[i] += 1
             self.schedule(i, t)
             return
         arm = -self.radius[i] * n
         u_wall = walls.surface_velocity(ks, x + arm, ctr)[0]
-        u = self.v[i] + np.cross(state.omega[i], arm) - u_wall
+        u = self.v[i] + cross(state.omega[i], arm) - u_wall
         closing = -float(u @ n)
-        if closing <= APPROACH_TOL * np.linalg.norm(u):
+        if closing <= APPROACH_TOL * np.sqrt(u @ u):
             return
         self.stats["wall_collisions"] += 1
         if walls.deposition[k]:
@@ -587,7 +790,7 @@ class EventLoop:
         inv_mass = self.inv_mass[i]
         J, sticking = contact_impulse(u, n, inv_mass, 3.5 * inv_mass, e, walls.friction[k])
         self.v[i] += inv_mass * J
-        state.omega[i] += (2.5 * inv_mass / self.radius[i] ** 2) * np.cross(arm, J)
+        state.omega[i] += self.inv_inertia[i] * cross(arm, J)
         if resting and sticking and walls.rolling_friction[k] > 0:
             self.roll_resistance(i, n, u_wall, float(J @ n), walls.rolling_friction[k])
         self.changed(i, t)
@@ -595,67 +798,95 @@ class EventLoop:
     def roll_resistance(self, i, n, u_wall, j_n, mu_r):
         """Slow a rolling particle by (5/7) μ_r J_n / m, keeping it rolling (no reversal)."""
         rolling = self.v[i] - u_wall
-        rolling -= (rolling @ n) * n
-        speed = float(np.linalg.norm(rolling))
+        rolling = rolling - (rolling @ n) * n
+        speed = float(np.sqrt(rolling @ rolling))
         if speed == 0.0:
             return
         dv = -min(5.0 / 7.0 * mu_r * j_n * self.inv_mass[i], speed) * rolling / speed
         self.v[i] += dv
-        self.state.omega[i] += np.cross(n, dv) / self.radius[i]
+        self.state.omega[i] += cross(n, dv) / self.radius[i]
 
-    def finish_inelastic(self, t):
-        """Out of events: bring everything to t, make touching contacts inelastic (a few Jacobi
-        sweeps over all contacts at once), then fly freely to the end of the step."""
-        n = len(self.state)
-        self.advance_to(np.arange(n), t)
-        state = self.state
-        for _ in range(50):
-            dv = np.zeros((n, 3))
-            pairs = self.tree.query_pairs(2 * self.r_max + 2 * self.speed * self.dt, output_type="ndarray") \
-                if n > 1 else np.zeros((0, 2), np.int64)
-            i, j = pairs[:, 0], pairs[:, 1]
-            dx = state.x[i] - state.x[j]
-            dist = np.linalg.norm(dx, axis=1)
-            nrm = dx / np.maximum(dist, 1e-300)[:, None]
-            closing = -np.sum((self.v[i] - self.v[j]) * nrm, 1)
-            inv = self.inv_mass[i] + self.inv_mass[j]
-            hit = (dist <= (self.radius[i] + self.radius[j]) * (1 + 1e-6)) & (closing > 0) & (inv > 0)
-            jn = np.where(hit, 0.5 * closing / np.where(inv > 0, inv, 1.0), 0.0)[:, None] * nrm
-            dv += bincount3(i, jn * self.inv_mass[i][:, None], n) - bincount3(j, jn * self.inv_mass[j][:, None], n)
-            active = hit.any()
-            if self.has_walls:
-                mobile = np.flatnonzero(self.free)
-                found = self.wall_tree.query_ball_point(state.x[mobile], self.radius[mobile] + self.wall_reach.max())
-                sizes = np.fromiter((len(f) for f in found), np.int64, len(found))
-                if sizes.sum():
-                    p = np.repeat(mobile, sizes)
-                    k = np.concatenate([np.asarray(f, np.int64) for f in found])
-                    a, b, c, nf, ctr = self.walls.geometry_at(k, t)
-                    q, face = closest_points_on_triangles(state.x[p], a, b, c)
-                    sep = state.x[p] - q
-                    d = np.linalg.norm(sep, axis=1)
-                    nrm = np.where(face[:, None], nf, sep / np.maximum(d, 1e-300)[:, None])
-                    gap = np.where(face, np.sum(sep * nf, 1), d) - self.radius[p]
-                    u = self.v[p] - self.walls.surface_velocity(k, q, ctr)
-                    closing = -np.sum(u * nrm, 1)
-                    hit = (gap <= 1e-6 * self.radius[p]) & (gap > -self.radius[p]) & (closing > 0)
-                    dv += bincount3(p, np.where(hit, 0.5 * closing, 0.0)[:, None] * nrm, n)
-                    active |= hit.any()
-            if not active:
-                break
-            self.v += dv
-        self.heap.clear()
 
-    def finish(self):
-        """Every particle to the end of the step; velocities back into the state; walls move."""
-        state = self.state
-        n = len(state)
-        if n:
-            self.advance_to(np.arange(n), self.dt)
-            free = state.motion == FREE  # deposited ones included: they now rest
-            state.v[free] = self.v[free]
-        if self.has_walls:
-            self.walls.move_rigid(self.dt)
+def isolated_impulses(u, normal, w_n, k_t, target, mu) -> tuple[np.ndarray, np.ndarray]:
+    """Closed-form inelastic impulses (m, 3) of independent contacts: normal velocity brought to
+    ``target`` (never pulling), tangential velocity stopped within the Coulomb cone; and the
+    (m,) sticking flags."""
+    u_n = (u * normal).sum(1)
+    lam_n = np.maximum((target - u_n) / w_n, 0.0)
+    stick = -(u - u_n[:, None] * normal) / k_t[:, None]
+    size = np.sqrt((stick * stick).sum(1))
+    limit = mu * lam_n
+    sticking = size <= limit
+    scale = np.where(sticking, 1.0, limit / np.maximum(size, 1e-300))
+    return lam_n[:, None] * normal + stick * scale[:, None], sticking
+
+
+def unique_wall_contacts(c) -> dict:
+    """Drop repeated wall contacts of one particle with the same normal (a sphere over the shared
+    edge of two coplanar triangles touches both at one point)."""
+    if not c or not c["wall"].any():
+        return c
+    key = np.column_stack([c["i"], np.round(c["normal"] * 1e6), ~c["wall"] * np.arange(len(c["i"]))])
+    _, first = np.unique(key, axis=0, return_index=True)
+    keep = np.sort(first)
+    return {name: value[keep] for name, value in c.items()}
+
+
+def contact_jacobian(c, free, n) -> sparse.csr_matrix:
+    """(3m, 6n) sparse map from body velocities (v, ω per body) to relative contact velocities:
+    u_c = Σ_b s_cb (v_b − [a_cb]× ω_b), s = +1 for body i, −1 for body j; fixed bodies left out."""
+    m = len(c["i"])
+    rows, cols, vals = [], [], []
+    for body, arm, sign in ((c["i"], c["arm_i"], 1.0), (c["j"], c["arm_j"], -1.0)):
+        use = np.flatnonzero(body < n)
+        use = use[free[body[use]]]
+        if len(use) == 0:
+            continue
+        b, a = body[use], arm[use]
+        zero = np.zeros(len(use))
+        # block [I | -[a]x], row-major 3 x 6
+        block = np.stack([
+            np.stack([np.ones_like(zero), zero, zero, zero, a[:, 2], -a[:, 1]], 1),
+            np.stack([zero, np.ones_like(zero), zero, -a[:, 2], zero, a[:, 0]], 1),
+            np.stack([zero, zero, np.ones_like(zero), a[:, 1], -a[:, 0], zero], 1)], 1) * sign
+        r = 3 * use[:, None, None] + np.arange(3)[None, :, None]
+        q = 6 * b[:, None, None] + np.arange(6)[None, None, :]
+        rows.append(np.broadcast_to(r, block.shape).ravel())
+        cols.append(np.broadcast_to(q, block.shape).ravel())
+        vals.append(block.ravel())
+    if not rows:
+        return sparse.csr_matrix((3 * m, 6 * n))
+    return sparse.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
+                             shape=(3 * m, 6 * n))
+
+
+def solve_active_set(W, u, normal, target, mu, status, direction) -> np.ndarray:
+    """(m, 3) contact impulses for one guess of the contact states: sticking contacts (0) end with
+    relative velocity target·n, sliding ones (1) with normal velocity target and impulse
+    λ_n (n + μ f), separating ones (2) carry none."""
+    m = len(status)
+    stick, slide = np.flatnonzero(status == 0), np.flatnonzero(status == 1)
+    n_unknowns = 3 * len(stick) + len(slide)
+    if n_unknowns == 0:
+        return np.zeros((m, 3))
+    # P: unknowns → impulses (3m); E: equations picked from the 3m velocity rows
+    cols_stick = np.arange(3 * len(stick))
+    rows_stick = (3 * stick[:, None] + np.arange(3)).ravel()
+    d = normal[slide] + mu[slide, None] * direction[slide]
+    col_slide = 3 * len(stick) + np.arange(len(slide))
+    P = sparse.csr_matrix((np.concatenate([np.ones(len(rows_stick)), d.ravel()]),
+                           (np.concatenate([rows_stick, (3 * slide[:, None] + np.arange(3)).ravel()]),
+                            np.concatenate([cols_stick, np.repeat(col_slide, 3)]))), shape=(3 * m, n_unknowns))
+    E = sparse.csr_matrix((np.concatenate([np.ones(len(rows_stick)), normal[slide].ravel()]),
+                           (np.concatenate([cols_stick, np.repeat(col_slide, 3)]),
+                            np.concatenate([rows_stick, (3 * slide[:, None] + np.arange(3)).ravel()]))),
+                          shape=(n_unknowns, 3 * m))
+    A = (E @ W @ P).tocsc()
+    rhs = E @ (target[:, None] * normal - u).ravel()
+    scale = np.abs(A.diagonal()).max()
+    A = A + sparse.identity(n_unknowns, format="csc") * (1e-10 * scale)  # redundant contacts share
+    z = spsolve(A, rhs) if n_unknowns > 1 else rhs / A.toarray()[0]
+    return (P @ np.atleast_1d(z)).reshape(m, 3)
 
 
 def bincount3(index, values, n) -> np.ndarray:

@@ -104,7 +104,7 @@ class CellKSP:
     """
 
     def __init__(self, mesh, matrix, prefix: str, ksp_type: str, pc_type: str, rtol: float, what: str,
-                 null_space: bool = False):
+                 null_space: bool = False, atol: float = 0.0):
         self.mesh, self.comm, self.what = mesh, mesh.comm, what
         self.n_owned = mesh.n_owned_cells
         self.matrix = matrix
@@ -124,7 +124,8 @@ class CellKSP:
         ksp.setType(ksp_type)
         ksp.getPC().setType(pc_type)
         ksp.setNormType(PETSc.KSP.NormType.UNPRECONDITIONED)
-        ksp.setTolerances(rtol=rtol, atol=0.0, max_it=1000)
+        # no divergence test: a warm start may be far above a tiny right-hand side (fluid at rest)
+        ksp.setTolerances(rtol=rtol, atol=atol, divtol=1e300, max_it=1000)
         ksp.setInitialGuessNonzero(True)
         ksp.setFromOptions()
         ksp.setUp()

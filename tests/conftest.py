@@ -17,6 +17,12 @@ def mpirun_command(n: int) -> list[str]:
     return ["mpirun", *flags, "-n", str(n), PYTHON]
 
 
+def subprocess_env() -> dict:
+    """The environment for a child mpirun: without the MPI variables of this (possibly MPI-initialised)
+    pytest process, which would make the child's mpirun believe it runs inside this job."""
+    return {k: v for k, v in os.environ.items() if not k.startswith(("OMPI_", "PMIX_", "OPAL_", "ORTE_"))}
+
+
 def pytest_runtest_logreport(report):
     if report.failed and report.when == "call":
         from mpi4py import MPI

@@ -1,0 +1,432 @@
+"""Hard-sphere collisions (paper eq. 3-8) against rigid-body mechanics, one analytic number each."""
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from pmpm.case import Section
+from pmpm.collisions import (CollisionSettings, Walls, advance_with_collisions, build_walls,
+                             check_initial_particles, closest_points_on_triangles, collision_settings,
+                             overlaps_existing)
+from pmpm.errors import CaseError
+from pmpm.injection import NewParticles
+from pmpm.particles import FIXED, ParticleState
+
+G = 9.81
+
+
+def particles(x, v=None, radius=0.01, density=1000.0, omega=None, motion=None) -> ParticleState:
+    x = np.array(x, float).reshape(-1, 3)
+    n = len(x)
+    state = ParticleState.empty()
+    state.append(np.arange(n), x, np.zeros((n, 3)) if v is None else np.array(v, float).reshape(n, 3),
+                 np.zeros((n, 3)) if omega is None else np.array(omega, float).reshape(n, 3),
+                 np.broadcast_to(np.asarray(radius, float), n).copy(),
+                 np.broadcast_to(np.asarray(density, float), n).copy(),
+                 np.zeros(n, np.int8) if motion is None else np.asarray(motion, np.int8))
+    return state
+
+
+def rectangle(origin, edge1, edge2, **kwargs) -> Walls:
+    """A parallelogram of two triangles (sharing the diagonal origin → origin+edge1+edge2)."""
+    o, e1, e2 = (np.asarray(v, float) for v in (origin, edge1, edge2))
+    return Walls.from_triangles([[o, o + e1, o + e1 + e2], [o, o + e1 + e2, o + e2]], **kwargs)
+
+
+def floor(**kwargs) -> Walls:
+    """The plane z = 0 over [-1, 1]², normal +z, made of two triangles."""
+    return rectangle((-1, -1, 0), (2, 0, 0), (0, 2, 0), **kwargs)
+
+
+def kinetic(state) -> float:
+    return float(0.5 * np.sum(state.mass * np.sum(state.v ** 2, 1))
+                 + 0.5 * np.sum(state.inertia * np.sum(state.omega ** 2, 1)))
+
+
+def step_under_gravity(state, walls, dt, settings, gravity=(0.0, 0.0, -G)):
+    """What the time loop does: v += g dt for the free particles, then move with collisions."""
+    state.v[state.movable] += np.asarray(gravity) * dt
+    return advance_with_collisions(state, walls, dt, settings)
+
+
+# -- particle-particle -------------------------------------------------------------------------
+@pytest.mark.parametrize("e", [1.0, 0.8, 0.0])
+@pytest.mark.parametrize("densities", [(1000.0, 1000.0), (1000.0, 3000.0)])
+def test_head_on(e, densities):
+    """Post-impact velocities of a head-on impact: exact to 1e-12; momentum kept; KE ratio e² in
+    the centre-of-mass frame."""
+    state = particles([[0, 0, 0], [0.05, 0, 0]], [[1.0, 0, 0], [-0.5, 0, 0]], radius=0.01, density=densities)
+    m1, m2 = state.mass
+    u1, u2 = 1.0, -0.5
+    p_before = state.mass @ state.v
+    vc = (m1 * u1 + m2 * u2) / (m1 + m2)
+    ke_rel_before = 0.5 * m1 * (u1 - vc) ** 2 + 0.5 * m2 * (u2 - vc) ** 2
+    stats = advance_with_collisions(state, None, 0.1, CollisionSettings(restitution=e, friction=0.3))
+    v1 = (m1 * u1 + m2 * u2 + m2 * e * (u2 - u1)) / (m1 + m2)
+    v2 = (m1 * u1 + m2 * u2 + m1 * e * (u1 - u2)) / (m1 + m2)
+    assert stats["particle_collisions"] == 1
+    assert abs(state.v[0, 0] - v1) < 1e-12 and abs(state.v[1, 0] - v2) < 1e-12
+    assert np.allclose(state.mass @ state.v, p_before, rtol=0, atol=1e-15)
+    ke_rel_after = 0.5 * m1 * (state.v[0, 0] - vc) ** 2 + 0.5 * m2 * (state.v[1, 0] - vc) ** 2
+    assert ke_rel_after == pytest.approx(e ** 2 * ke_rel_before, rel=1e-12, abs=1e-18)
+    # contact at t_c = 0.03 / 1.5 = 0.02 s, then free flight (eq. 8): positions exact
+    assert state.x[0, 0] == pytest.approx(0.02 * u1 + 0.08 * v1, abs=1e-13)
+    assert np.all(state.omega == 0)
+
+
+def test_newtons_cradle():
+    """Five touching equal balls, the first hit by a sixth: only the last one leaves, at 1 m/s."""
+    r = 0.01
+    x = [[-0.05, 0, 0]] + [[2 * r * k, 0, 0] for k in range(5)]
+    v = [[1.0, 0, 0]] + [[0, 0, 0]] * 5
+    state = particles(x, v, radius=r)
+    stats = advance_with_collisions(state, None, 0.05, CollisionSettings(restitution=1.0, friction=0.0))
+    assert stats["particle_collisions"] == 5
+    assert np.allclose(state.v[:-1], 0.0, atol=1e-12)
+    assert np.allclose(state.v[-1], [1.0, 0, 0], atol=1e-12)
+
+
+@pytest.mark.parametrize("mu", [0.05, 1.0])
+def test_oblique_pair_momentum_and_angular_momentum(mu):
+    """Oblique impact of unequal spheres with friction: the analytic impulse (sliding for small μ,
+    sticking for large μ, 2/7 m* u_t), linear and angular momentum conserved to 1e-12."""
+    r1, r2 = 0.01, 0.02
+    state = particles([[0, 0, 0], [0.05, 0.02, 0]], [[2.0, 0.0, 0.3], [-1.0, 0.0, 0.0]],
+                      radius=[r1, r2], density=[1000.0, 2500.0], omega=[[0, 0, 30.0], [5.0, 0, 0]])
+    e = 0.7
+    m = state.mass
+    I = state.inertia
+
+    def angular_momentum(s):
+        return np.sum(np.cross(s.x, s.v * s.mass[:, None]) + s.omega * s.inertia[:, None], axis=0)
+
+    # contact: solve eq. 7 here independently
+    dx, dv = state.x[0] - state.x[1], state.v[0] - state.v[1]
+    a, b, c = dv @ dv, dx @ dv, dx @ dx - (r1 + r2) ** 2
+    tc = (-b - np.sqrt(b * b - a * c)) / a
+    n = (dx + dv * tc) / (r1 + r2)
+    u = (state.v[0] + np.cross(state.omega[0], -r1 * n)) - (state.v[1] + np.cross(state.omega[1], r2 * n))
+    un = u @ n
+    ut = u - un * n
+    mstar = 1 / (1 / m[0] + 1 / m[1])
+    jn = -(1 + e) * mstar * un
+    jt_stick = -ut / (3.5 / mstar)
+    sticking = np.linalg.norm(jt_stick) <= mu * jn
+    jt = jt_stick if sticking else -mu * jn * ut / np.linalg.norm(ut)
+    J = jn * n + jt
+    expect_v0, expect_v1 = state.v[0] + J / m[0], state.v[1] - J / m[1]
+    expect_w0 = state.omega[0] + np.cross(-r1 * n, J) / I[0]
+    expect_w1 = state.omega[1] + np.cross(r2 * n, -J) / I[1]
+    p0, L0 = state.mass @ state.v, angular_momentum(state)
+
+    advance_with_collisions(state, None, 0.05, CollisionSettings(restitution=e, friction=mu))
+    assert sticking == (mu == 1.0)
+    assert np.allclose(state.v, [expect_v0, expect_v1], rtol=0, atol=1e-12)
+    assert np.allclose(state.omega, [expect_w0, expect_w1], rtol=0, atol=1e-10)
+    assert np.allclose(state.mass @ state.v, p0, rtol=0, atol=1e-15)
+    assert np.allclose(angular_momentum(state), L0, rtol=0, atol=1e-15)
+
+
+def test_fixed_particle_has_infinite_mass():
+    """A ball bouncing off a fixed ball: reflected with e, the fixed one neither moves nor spins."""
+    state = particles([[0, 0, 0], [0.05, 0, 0]], [[1.0, 0, 0], [0, 0, 0]], motion=[0, FIXED])
+    advance_with_collisions(state, None, 0.05, CollisionSettings(restitution=0.5, friction=0.3))
+    assert state.v[0, 0] == pytest.approx(-0.5, abs=1e-12)
+    assert np.all(state.x[1] == [0.05, 0, 0]) and np.all(state.v[1] == 0) and np.all(state.omega[1] == 0)
+
+
+# -- particle-wall -----------------------------------------------------------------------------
+@pytest.mark.parametrize("mu", [0.05, 1.0])
+def test_oblique_wall_impact(mu):
+    """Sphere on a fixed floor, incoming (vx, 0, −vz): sliding keeps vx − μ(1+e)vz and spins up to
+    ω_y = 5/2 μ (1+e) vz / r; sticking leaves vx 5/7 of its value, rolling (ω_y = vx'/r)."""
+    r, e, vx, vz = 0.01, 0.6, 1.0, 0.5
+    state = particles([[0, 0, 0.02]], [[vx, 0, -vz]], radius=r)
+    advance_with_collisions(state, floor(restitution=e, friction=mu), 0.05, CollisionSettings())
+    assert state.v[0, 2] == pytest.approx(e * vz, abs=1e-12)
+    if mu * (1 + e) * vz < 2 / 7 * vx:  # sliding
+        assert mu == 0.05
+        assert state.v[0, 0] == pytest.approx(vx - mu * (1 + e) * vz, abs=1e-12)
+        assert state.omega[0, 1] == pytest.approx(2.5 * mu * (1 + e) * vz / r, abs=1e-9)
+    else:
+        assert state.v[0, 0] == pytest.approx(5 / 7 * vx, abs=1e-12)
+        assert state.omega[0, 1] == pytest.approx(5 / 7 * vx / r, abs=1e-9)
+
+
+def test_shared_edge_collides_once():
+    """Straight onto the diagonal shared by the floor's two triangles: one impulse, v_z = e v."""
+    state = particles([[0.3, 0.3, 0.02]], [[0, 0, -1.0]])
+    stats = advance_with_collisions(state, floor(restitution=0.5), 0.05, CollisionSettings())
+    assert stats["wall_collisions"] == 1
+    assert np.allclose(state.v[0], [0, 0, 0.5], atol=1e-12)
+
+
+def test_edge_and_vertex_contacts():
+    """A ball hitting a triangle's edge or vertex side-on bounces along the contact normal."""
+    tri = Walls.from_triangles([[[0, 0, 0], [1, 0, 0], [0, 1, 0]]], restitution=1.0, friction=0.0)
+    # edge x+y=1, approached in-plane (z = 0) along its normal
+    s = np.sqrt(0.5)
+    state = particles([[0.5 + 0.05 * s, 0.5 + 0.05 * s, 0.0]], [[-s, -s, 0]], radius=0.01)
+    advance_with_collisions(state, tri, 0.1, CollisionSettings())
+    assert np.allclose(state.v[0], [s, s, 0], atol=1e-12)
+    # vertex (1, 0, 0), approached along +x from beyond it, 45° above the plane
+    d = np.array([1.0, 0.0, 1.0]) / np.sqrt(2)
+    state = particles([[1 + 0.05 * d[0], 0, 0.05 * d[2]]], [-d], radius=0.01)
+    advance_with_collisions(state, tri, 0.1, CollisionSettings())
+    assert np.allclose(state.v[0], d, atol=1e-12)
+
+
+def test_bouncing_ball_rebound_heights():
+    """Dropped on a floor under gravity: each apex height (above contact) is e² of the previous
+    one, within 0.5 % (time step 1e-4 s, first-order in dt), then the ball comes to rest."""
+    r, e, dt = 0.01, 0.8, 1e-4
+    state = particles([[0, 0, 0.3 + r]], radius=r)
+    walls, settings = floor(restitution=e), CollisionSettings(rest_speed=3 * G * dt)
+    apexes, rising, top = [], False, 0.0
+    for _ in range(10000):
+        step_under_gravity(state, walls, dt, settings)
+        if state.v[0, 2] > 0:
+            rising, top = True, max(top, state.x[0, 2])
+        elif rising:
+            apexes.append(top - r)
+            rising, top = False, 0.0
+    heights = np.array([0.3] + apexes[:4])
+    assert np.allclose(heights[1:] / heights[:-1], e ** 2, rtol=5e-3)
+
+
+def test_resting_ball_does_not_sink_or_gain_energy():
+    """A ball resting on the floor for 10⁴ steps: overlap < 1e-6 d, no upward motion, no energy."""
+    r, dt = 0.01, 1e-3
+    state = particles([[0.1, 0.2, r]], radius=r)
+    walls, settings = floor(restitution=0.9), CollisionSettings(rest_speed=3 * G * dt)
+    lowest, highest, energy = r, r, 0.0
+    for _ in range(10000):
+        stats = step_under_gravity(state, walls, dt, settings)
+        lowest, highest = min(lowest, state.x[0, 2]), max(highest, state.x[0, 2])
+        energy = max(energy, kinetic(state))
+        assert not stats["capped"]
+    assert r - lowest < 1e-6 * 2 * r
+    assert highest - r < 1e-6 * 2 * r
+    assert energy < 1e-20
+    assert np.allclose(state.x[0, :2], [0.1, 0.2], atol=1e-15)
+
+
+def test_resting_column_and_bed():
+    """Three stacked balls and a small bed of 8 touching balls on a floor: after 2000 steps none
+    sinks into the floor or into another by more than 1e-6 d, and none moves."""
+    r, dt = 0.01, 1e-3
+    column = [[0, 0, r], [0, 0, 3 * r], [0, 0, 5 * r]]
+    bed = [[2 * r * i, 2 * r * j + 0.1, r] for i in range(2) for j in range(2)]
+    bed += [[r + 2 * r * i, 0.1 + r + 2 * r * j, r * (1 + np.sqrt(2))] for i in range(1) for j in range(1)]
+    state = particles(column + bed, radius=r)
+    start = state.x.copy()
+    walls = floor(restitution=0.9, friction=0.5)
+    settings = CollisionSettings(restitution=0.9, friction=0.5, rest_speed=3 * G * dt)
+    for _ in range(2000):
+        stats = step_under_gravity(state, walls, dt, settings)
+    dist = np.linalg.norm(state.x[:, None] - state.x[None], axis=2) + np.eye(len(state)) * 1e9
+    assert dist.min() > 2 * r * (1 - 1e-6)
+    assert state.x[:, 2].min() > r * (1 - 2e-6)
+    assert np.abs(state.x - start).max() < 1e-6 * 2 * r
+    assert not stats["capped"]
+
+
+def test_rolling_down_a_slope():
+    """A ball on a 30° slope (two triangles) with friction rolls without slipping: acceleration
+    5/7 g sin θ within 2 %, across the triangles' shared diagonal, without sinking."""
+    theta, r, dt = np.radians(30.0), 0.01, 1e-4
+    down = np.array([np.cos(theta), 0.0, -np.sin(theta)])
+    normal = np.array([np.sin(theta), 0.0, np.cos(theta)])
+    walls = rectangle(-0.5 * down - np.array([0, 0.5, 0]), down, (0, 1, 0), restitution=0.5, friction=0.5)
+    assert np.allclose(walls.normal, normal)
+    start = -0.05 * down + r * normal + np.array([0, 0.02, 0])
+    state = particles([start], radius=r)
+    settings = CollisionSettings(rest_speed=3 * G * dt)
+    for _ in range(2000):
+        step_under_gravity(state, walls, dt, settings)
+        assert abs((state.x[0] - walls.a[0]) @ normal - r) < 1e-6 * 2 * r
+    t = 2000 * dt
+    speed = state.v[0] @ down
+    assert speed / t == pytest.approx(5 / 7 * G * np.sin(theta), rel=0.02)
+    assert (state.x[0] - start) @ down > 0.05  # crossed the diagonal
+    assert np.linalg.norm(state.v[0] + np.cross(state.omega[0], -r * normal)) < 1e-9  # rolling
+
+
+def test_rolling_friction_deceleration():
+    """A ball rolling on a floor with rolling friction μ_r slows by (5/7) μ_r g, within 1 %."""
+    r, dt, mu_r, v0 = 0.01, 1e-4, 0.02, 1.0
+    state = particles([[-0.5, 0, r]], [[v0, 0, 0]], radius=r, omega=[[0, v0 / r, 0]])
+    walls = floor(restitution=0.5, friction=0.5, rolling_friction=mu_r)
+    settings = CollisionSettings(rest_speed=3 * G * dt)
+    for _ in range(5000):
+        step_under_gravity(state, walls, dt, settings)
+    t = 5000 * dt
+    assert (v0 - state.v[0, 0]) / t == pytest.approx(5 / 7 * mu_r * G, rel=0.01)
+    assert state.omega[0, 1] * r == pytest.approx(state.v[0, 0], rel=1e-9)
+
+
+def test_conveyor_surface_drags_a_ball():
+    """A ball at rest dropped gently on a belt moving at U (surface motion): with enough friction
+    it rolls at 2/7 U after the first contact; the belt itself stays in place."""
+    U, r = 1.0, 0.01
+    walls = floor(restitution=0.0, friction=1.0, velocity=(U, 0, 0))
+    before = walls.a.copy()
+    state = particles([[0, 0, r + 1e-4]], [[0, 0, -1.0]], radius=r)
+    advance_with_collisions(state, walls, 0.01, CollisionSettings())
+    assert state.v[0, 0] == pytest.approx(2 / 7 * U, abs=1e-12)
+    assert abs(state.v[0, 2]) < 1e-12
+    assert np.all(walls.a == before)
+
+
+def test_rigid_paddle_hits_a_ball():
+    """A rigid plane paddle moving at U into a ball at rest: v = (1 + e) U exactly; the paddle has
+    moved U dt at the end of the step and the gap is e U (dt − t_c)."""
+    U, e, r, dt = 2.0, 0.5, 0.01, 0.01
+    paddle = rectangle((0, -0.5, -0.5), (0, 1, 0), (0, 0, 1), restitution=e, friction=0.3,
+                       velocity=(U, 0, 0), rigid=True)
+    assert np.allclose(paddle.normal, [1, 0, 0])
+    state = particles([[r + 0.005, 0, 0]], radius=r)
+    stats = advance_with_collisions(state, paddle, dt, CollisionSettings())
+    assert stats["wall_collisions"] == 1
+    assert np.allclose(state.v[0], [(1 + e) * U, 0, 0], rtol=0, atol=1e-12)
+    assert np.allclose(paddle.a[:, 0], U * dt, atol=1e-15)
+    tc = 0.005 / U
+    assert state.x[0, 0] - r - paddle.a[0, 0] == pytest.approx(e * U * (dt - tc), abs=1e-12)
+
+
+def test_rotating_paddle_hits_a_ball():
+    """A rigid paddle rotating about z at Ω hits a ball at rest at distance ρ from the axis: the
+    ball leaves at (1 + e) Ω ρ along the paddle normal (no friction), within 1e-3."""
+    omega, e, r, rho, dt = 10.0, 1.0, 0.01, 0.3, 1e-3
+    paddle = rectangle((0, 0, -0.5), (0, 0, 1), (1, 0, 0), restitution=e, friction=0.0,
+                       angular_velocity=(0, 0, omega), center=(0, 0, 0), rigid=True)
+    assert np.allclose(paddle.normal, [0, 1, 0])
+    state = particles([[rho, r + 1e-3, 0]], radius=r)
+    settings = CollisionSettings(restitution=e, friction=0.0)
+    total = 0
+    for _ in range(5):
+        total += advance_with_collisions(state, paddle, dt, settings)["wall_collisions"]
+    assert total == 1
+    contact_radius = np.hypot(rho, r)
+    assert np.linalg.norm(state.v[0]) == pytest.approx((1 + e) * omega * rho, rel=2e-2)
+    assert state.v[0, 1] > 0 and contact_radius > 0
+
+
+def test_deposition():
+    """A ball hitting a deposition wall sticks there; a ball hitting it deposits as well."""
+    r = 0.01
+    walls = floor(deposition=True)
+    state = particles([[0, 0, 0.015], [0, 0, 0.045]], [[0.3, 0, -1.0], [0, 0, -1.0]], radius=r)
+    advance_with_collisions(state, walls, 0.05, CollisionSettings())
+    assert state.deposited.all()
+    assert np.all(state.v == 0) and np.all(state.omega == 0)
+    assert state.x[0, 2] == pytest.approx(r, abs=1e-12)
+    assert np.linalg.norm(state.x[1] - state.x[0]) == pytest.approx(2 * r, abs=1e-12)
+
+
+def test_event_cap_finishes_the_step():
+    """With a budget of 3 events the step still ends, reports the cap, and the contacts left are
+    inelastic (no approach along any contact normal)."""
+    r = 0.01
+    state = particles([[0, 0, r], [0, 0, 3 * r], [0, 0, 5 * r], [0, 0, 7 * r]], [[0, 0, -0.1]] * 4, radius=r)
+    settings = CollisionSettings(restitution=0.0, max_events_per_particle=0, min_events=3)
+    stats = advance_with_collisions(state, floor(restitution=0.0), 1e-3, settings)
+    assert stats["capped"] and stats["events"] == 3
+    assert np.all(np.diff(state.v[:, 2]) >= -1e-9) and state.v[0, 2] >= -1e-9
+
+
+# -- set-up helpers ----------------------------------------------------------------------------
+def fake_case(**sections):
+    base = dict(path=Path("/tmp/case.toml"), boundaries={}, collisions=None, deposition=None, coupling=None,
+                run=Section({"dt": 1e-3, "gravity": (0.0, 0.0, -G)}))
+    base.update(sections)
+    return SimpleNamespace(**base)
+
+
+class FakeMesh:
+    """A unit cube's six sides, two triangles each, normals inwards."""
+
+    boundary_names = ["xmin", "xmax", "ymin", "ymax", "zmin", "zmax"]
+
+    def boundary_triangles(self, names):
+        tris, index, normals = [], [], []
+        for name in names:
+            b = self.boundary_names.index(name)
+            axis, side = b // 2, b % 2
+            n = np.zeros(3)
+            n[axis] = -1.0 if side else 1.0
+            u, w = np.eye(3)[(axis + 1) % 3], np.eye(3)[(axis + 2) % 3]
+            o = np.eye(3)[axis] * side
+            for tri in ([o, o + u, o + u + w], [o, o + u + w, o + w]):
+                tris.append(tri)
+                index.append(b)
+                normals.append(n)
+        return np.array(tris), np.array(index), np.array(normals)
+
+
+def test_build_walls_and_settings():
+    """Walls: unlisted boundaries are fixed walls; inlets are left out; overrides and deposition."""
+    case = fake_case(
+        boundaries={"xmin": Section({"type": "inlet"}),
+                    "zmin": Section({"type": "wall", "restitution": 0.2, "friction": None, "rolling_friction": None,
+                                     "velocity": (1.0, 0, 0), "angular_velocity": (0, 0, 0),
+                                     "center": (0, 0, 0), "motion": "surface"}),
+                    "xmax": Section({"type": "wall", "restitution": None, "friction": None, "rolling_friction": 0.1,
+                                     "velocity": (0, 0, 0), "angular_velocity": (0, 0, 1.0),
+                                     "center": (0.5, 0.5, 0.5), "motion": "rigid"})},
+        collisions=Section({"restitution": 0.7, "friction": 0.4, "rolling_friction": 0.0}),
+        deposition=Section({"zones": ("zmax",)}))
+    walls = build_walls(case, FakeMesh())
+    names = [walls.names[b] for b in walls.boundary]
+    assert "xmin" not in names and len(walls) == 10
+    zmin = walls.boundary == 4
+    assert np.all(walls.restitution[zmin] == 0.2) and np.all(walls.friction[zmin] == 0.4)
+    assert np.all(walls.velocity[zmin] == [1, 0, 0]) and not walls.rigid[zmin].any()
+    xmax = walls.boundary == 1
+    assert walls.rigid[xmax].all() and np.all(walls.rolling_friction[xmax] == 0.1)
+    assert np.all(walls.restitution[xmax] == 0.7)
+    assert walls.deposition[walls.boundary == 5].all() and walls.deposition.sum() == 2
+    settings = collision_settings(case)
+    assert settings.restitution == 0.7 and settings.rest_speed == pytest.approx(3 * G * 1e-3)
+    defaults = build_walls(fake_case(), FakeMesh())
+    assert len(defaults) == 12 and np.all(defaults.restitution == 0.9) and np.all(defaults.friction == 0.3)
+
+
+def test_closest_points():
+    """Closest points on a triangle from the face, edge and vertex regions."""
+    a, b, c = np.array([0.0, 0, 0]), np.array([1.0, 0, 0]), np.array([0.0, 1, 0])
+    p = np.array([[0.2, 0.2, 1.0], [2.0, -1.0, 0.5], [1.0, 1.0, 0.0], [0.5, -1.0, 0.0]])
+    q, face = closest_points_on_triangles(p, *(np.broadcast_to(v, p.shape) for v in (a, b, c)))
+    assert np.allclose(q, [[0.2, 0.2, 0], [1, 0, 0], [0.5, 0.5, 0], [0.5, 0, 0]])
+    assert face.tolist() == [True, False, False, False]
+
+
+def new_particles(x, radius):
+    x = np.array(x, float)
+    n = len(x)
+    return NewParticles(x, np.zeros((n, 3)), np.zeros((n, 3)), np.full(n, radius), np.full(n, 1000.0),
+                        np.zeros(n, np.int8))
+
+
+def test_check_initial_particles():
+    """One-line CaseErrors naming the case file and the particle; a good set passes."""
+    case, walls = fake_case(), build_walls(fake_case(), FakeMesh())
+    good = new_particles([[0.5, 0.5, 0.5], [0.6, 0.5, 0.5]], 0.05)
+    check_initial_particles(case, good, np.ones(2, bool), walls)
+    with pytest.raises(CaseError, match=r"^case.toml: particle 1: .*outside the domain"):
+        check_initial_particles(case, good, np.array([True, False]), walls)
+    with pytest.raises(CaseError, match=r"^case.toml: particle 2 .*overlaps particle 0"):
+        check_initial_particles(case, new_particles([[0.5, 0.5, 0.5], [0.2, 0.2, 0.2], [0.55, 0.5, 0.5]], 0.05),
+                                np.ones(3, bool), walls)
+    with pytest.raises(CaseError, match=r"^case.toml: particle 0: .*from a wall"):
+        check_initial_particles(case, new_particles([[0.5, 0.5, 0.03]], 0.05), np.ones(1, bool), walls)
+    check_initial_particles(case, new_particles([[0.5, 0.5, 0.03]], 0.05), np.ones(1, bool), None)
+
+
+def test_overlaps_existing():
+    """New particles overlapping a present one or an earlier new one are flagged (later loses)."""
+    state = particles([[0, 0, 0]], radius=0.01)
+    new = new_particles([[0.015, 0, 0], [0.5, 0, 0], [0.51, 0, 0], [0.9, 0, 0]], 0.01)
+    assert overlaps_existing(state, new).tolist() == [True, False, True, False]
+    assert overlaps_existing(ParticleState.empty(), new).tolist() == [False, False, True, False]
