@@ -118,10 +118,14 @@ class Coupling:
     def sampled_fraction(self, state, particle, cell) -> np.ndarray:
         """Share of the cell's k³ sample points inside the sphere, per (particle, cell) pair."""
         corners = self.mesh.vertex_xyz[self.mesh.cell_vertices[cell]]            # (m, nv, 3)
-        alpha = np.zeros(len(cell))
+        gap = corners - state.x[particle, None, :]
+        vertex_inside = np.einsum("mvd,mvd->mv", gap, gap) <= state.radius[particle, None] ** 2
+        # a convex cell with every vertex inside the (convex) sphere lies inside it: α = 1, no sampling
+        alpha = vertex_inside.all(axis=1).astype(float)
+        cut = np.flatnonzero(alpha < 1)
         chunk = max(1, 2_000_000 // max(1, len(self.samples)))
-        for start in range(0, len(cell), chunk):
-            part = slice(start, start + chunk)
+        for start in range(0, len(cut), chunk):
+            part = cut[start:start + chunk]
             points = np.einsum("sv,mvd->msd", self.samples, corners[part])     # (m, k³, 3)
             gap = points - state.x[particle[part], None, :]
             inside = np.einsum("msd,msd->ms", gap, gap) <= state.radius[particle[part], None] ** 2

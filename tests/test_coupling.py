@@ -31,10 +31,11 @@ angular_velocity = {omega}
 radius = {radius}
 density = {rho_p}
 motion = "{motion}"
+{extra}
 """
 DEFAULTS = dict(end_time=0.1, dt=0.01, gravity="[0.0, 0.0, 0.0]", L=0.08, H=0.08, n=16, m=16, rho_f=1000.0,
                 mu=1.0, rule="subcell", update="implicit", position="[0.04, 0.04, 0.04]",
-                velocity="[0.0, 0.0, 0.0]", omega="[0.0, 0.0, 0.0]", radius=0.01, rho_p=1000.0, motion="free")
+                velocity="[0.0, 0.0, 0.0]", omega="[0.0, 0.0, 0.0]", radius=0.01, rho_p=1000.0, motion="free", extra="")
 
 
 def simulation(comm, tmp_path, **values):
@@ -147,3 +148,37 @@ def test_crossing_the_rank_boundary_same_trajectory(comm, tmp_path):
     assert abs(parallel[-1, 0] - parallel[0, 0]) > 0.001, "the sphere moves across the box"
     scale = np.abs(serial).max(axis=0)
     assert (np.abs(parallel - serial) <= 1e-8 * scale + 1e-14).all()
+
+
+def stokes_run(comm, tmp_path, cells_per_diameter, rule, steps, box_radii=6.0, diffusion_number=0.1):
+    """A fixed sphere in the exact Stokes flow: every boundary face and the initial field carry the
+    analytic solution, so the box needs no wall correction. Returns drag / 6πμaU."""
+    from pmpm.reference import stokes_drag, stokes_velocity
+
+    a, mu, rho, speed = 0.01, 1.0, 1000.0, 1e-3          # Re = ρ U 2a / μ = 0.02
+    h = 2 * a / cells_per_diameter
+    n = int(round(box_radii * a / h))
+    walls = "".join(f'[boundary.{b}]\ntype = "inlet"\n' for b in ("xmin", "xmax", "ymin", "ymax", "zmin", "zmax"))
+    centre = n * h / 2 + np.array([0.13, -0.21, 0.07]) * h      # off the lattice
+    sim = simulation(comm, tmp_path, L=n * h, H=n * h, n=n, m=n, mu=mu, rho_f=rho, rule=rule, motion="fixed",
+                     radius=a, position=f"[{centre[0]}, {centre[1]}, {centre[2]}]",
+                     dt=diffusion_number * h * h * rho / mu, extra=walls)
+    flow, far = sim.flow, np.array([0.0, 0.0, speed])
+    flow.u_fixed[:] = stokes_velocity(flow.xf_b, centre, a, far)
+    flow.flux_fixed[:] = np.einsum("ij,ij->i", flow.u_fixed, flow.S_b)
+    sim.fluid_state.flux[flow.n_interior:] = flow.flux_fixed
+    sim.fluid_state.u[:] = stokes_velocity(sim.mesh.cell_center, centre, a, far)
+    advance(sim, steps)
+    return sim.hydro_force[0] / stokes_drag(mu, a, speed)
+
+
+def test_stokes_drag(tmp_path):
+    """Drag on a fixed sphere at Re = 0.02 within 5% of 6πμaU at 8 cells per diameter (subcell rule);
+    the errors at 4 and 8 cells per diameter and of the paper's nodes rule are printed."""
+    ratios = {}
+    for cpd, rule in ((4, "subcell"), (8, "subcell"), (8, "nodes")):
+        ratios[cpd, rule] = stokes_run(MPI.COMM_SELF, tmp_path, cpd, rule, steps=40)
+        print(f"Stokes drag, {cpd} cells per diameter, {rule}: error {ratios[cpd, rule][2] - 1:+.4f}")
+    assert ratios[8, "subcell"][2] == pytest.approx(1.0, abs=0.05)
+    assert np.abs(ratios[8, "subcell"][:2]).max() < 0.01, "no sideways force"
+    assert abs(ratios[8, "subcell"][2] - 1) < abs(ratios[4, "subcell"][2] - 1), "refinement helps"

@@ -1,0 +1,40 @@
+"""Analytic and published references used by the validation tests and benchmark scripts."""
+from __future__ import annotations
+
+import numpy as np
+
+
+def stokes_velocity(x: np.ndarray, center: np.ndarray, radius: float, far_velocity: np.ndarray) -> np.ndarray:
+    """Stokes (1851) creeping flow past a fixed sphere, uniform ``far_velocity`` far away (n, 3)."""
+    r_vec = np.asarray(x, float) - center
+    r = np.linalg.norm(r_vec, axis=1)[:, None]
+    along = (r_vec @ far_velocity)[:, None]
+    return (far_velocity - 0.75 * radius * (far_velocity / r + along * r_vec / r ** 3)
+            - 0.25 * radius ** 3 * (far_velocity / r ** 3 - 3 * along * r_vec / r ** 5))
+
+
+def stokes_drag(viscosity: float, radius: float, speed: float) -> float:
+    """6 π μ a U (N)."""
+    return 6 * np.pi * viscosity * radius * speed
+
+
+def rotlet_torque(viscosity: float, radius: float, omega: float) -> float:
+    """Torque on a sphere spinning in unbounded still fluid at low Re, 8 π μ a³ ω (N m)."""
+    return 8 * np.pi * viscosity * radius ** 3 * omega
+
+
+def schiller_naumann_drag_coefficient(reynolds):
+    """C_D = 24/Re (1 + 0.15 Re^0.687), Re < 800."""
+    reynolds = np.asarray(reynolds, float)
+    return 24.0 / reynolds * (1 + 0.15 * reynolds ** 0.687)
+
+
+def terminal_velocity(particle_density, fluid_density, viscosity, diameter, gravity=9.81):
+    """Terminal settling speed with the Schiller–Naumann drag, by fixed-point iteration on Re."""
+    weight = (particle_density - fluid_density) * np.pi * diameter ** 3 / 6 * gravity
+    speed = abs(weight) / (3 * np.pi * viscosity * diameter)          # Stokes first guess
+    for _ in range(200):
+        reynolds = fluid_density * speed * diameter / viscosity
+        cd = schiller_naumann_drag_coefficient(reynolds)
+        speed = np.sqrt(abs(weight) / (0.5 * fluid_density * cd * np.pi * diameter ** 2 / 4))
+    return speed
