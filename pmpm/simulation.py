@@ -6,6 +6,7 @@ nothing, and its stages cost nothing.
 """
 from __future__ import annotations
 
+import copy
 import math
 import time as wallclock
 from dataclasses import dataclass, field
@@ -173,6 +174,7 @@ class Simulation:
         try:
             while self.time < run.end_time * (1 - 1e-12):
                 dt = min(run.dt, run.end_time - self.time)
+                self.keep_last_good_state()
                 self.advance(dt)
                 if self.time >= next_output * (1 - 1e-9) or self.time >= run.end_time * (1 - 1e-12):
                     with Timer(self.times, "output"):
@@ -186,6 +188,9 @@ class Simulation:
                     break
         except NumericalError:
             status = "numerical failure"
+            self.restore_last_good_state()   # SPEC §2: the last good state is written first
+            with Timer(self.times, "output"):
+                self.write_outputs()
             raise
         finally:
             total = wallclock.perf_counter() - started
@@ -263,6 +268,16 @@ class Simulation:
             return force, torque
         self.hydro_force, self.hydro_torque = hydro["force"], hydro["torque"]
         return force + hydro["force"], torque + hydro["torque"]
+
+    def keep_last_good_state(self) -> None:
+        """Copies of the state at the start of the step, written if the step fails."""
+        fluid = self.fluid_state
+        self.last_good = (self.time, self.step, copy.deepcopy(self.particles),
+                          None if fluid is None else copy.deepcopy(fluid), self.hydro_force, self.hydro_torque)
+
+    def restore_last_good_state(self) -> None:
+        (self.time, self.step, self.particles, self.fluid_state,
+         self.hydro_force, self.hydro_torque) = self.last_good
 
     def write_outputs(self) -> None:
         """Collective. One output time: particles.csv rows and a fields.h5 group."""

@@ -188,3 +188,21 @@ def test_xdmf_is_valid_and_points_at_the_data(tmp_path):
             assert tuple(int(d) for d in item.get("Dimensions").split()) == f[dataset].shape
             names.add(dataset.rsplit("/", 1)[-1])
     assert {"cells", "vertices", "velocity", "pressure", "volume_fraction", "position"} <= names
+
+
+def test_petsc_options_reach_the_solver_and_failure_exits_3(tmp_path):
+    """Single-dash options go to PETSc: a pressure KSP capped at 1 iteration cannot converge, and
+    the run stops with exit 3 and one line naming the solve, the step and what to change."""
+    folder = make_case(tmp_path, FLOW)
+    result = run_pmpm([folder, "--quiet", "-pressure_ksp_max_it", "1", "-pressure_ksp_rtol", "1e-14"])
+    assert result.returncode == 3, result.stderr
+    lines = [line for line in result.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1 and "pressure solve did not converge at step" in lines[0], result.stderr
+    assert "pc_type" in lines[0] and "Traceback" not in result.stderr
+    # the last good state (here the initial one) was written before stopping
+    import h5py
+    with h5py.File(folder / "output" / "fields.h5", "r") as f:
+        assert [f[f"output/{g}"].attrs["time"] for g in sorted(f["output"])] == [0.0, 0.0]
+        assert np.isfinite(f["output/000001/velocity"][...]).all()
+    summary = json.loads((folder / "output" / "summary.json").read_text())
+    assert summary["status"] == "numerical failure"

@@ -24,6 +24,7 @@ pressure_rtol = 1e-10
 [coupling]
 volume_fraction = "{rule}"
 update = "{update}"
+forcing_passes = {passes}
 [[particles.add]]
 position = {position}
 velocity = {velocity}
@@ -35,7 +36,7 @@ motion = "{motion}"
 """
 DEFAULTS = dict(end_time=0.1, dt=0.01, gravity="[0.0, 0.0, 0.0]", L=0.08, H=0.08, n=16, m=16, rho_f=1000.0,
                 mu=1.0, rule="subcell", update="implicit", position="[0.04, 0.04, 0.04]",
-                velocity="[0.0, 0.0, 0.0]", omega="[0.0, 0.0, 0.0]", radius=0.01, rho_p=1000.0, motion="free", extra="")
+                velocity="[0.0, 0.0, 0.0]", omega="[0.0, 0.0, 0.0]", radius=0.01, rho_p=1000.0, motion="free", extra="", passes=3)
 
 
 def simulation(comm, tmp_path, **values):
@@ -150,7 +151,8 @@ def test_crossing_the_rank_boundary_same_trajectory(comm, tmp_path):
     assert (np.abs(parallel - serial) <= 1e-8 * scale + 1e-14).all()
 
 
-def stokes_run(comm, tmp_path, cells_per_diameter, rule, steps, box_radii=6.0, diffusion_number=0.1):
+def stokes_run(comm, tmp_path, cells_per_diameter, rule, steps, box_radii=6.0, diffusion_number=0.1,
+               forcing_passes=3):
     """A fixed sphere in the exact Stokes flow: every boundary face and the initial field carry the
     analytic solution, so the box needs no wall correction. Returns drag / 6πμaU."""
     from pmpm.reference import stokes_drag, stokes_velocity
@@ -162,7 +164,7 @@ def stokes_run(comm, tmp_path, cells_per_diameter, rule, steps, box_radii=6.0, d
     centre = n * h / 2 + np.array([0.13, -0.21, 0.07]) * h      # off the lattice
     sim = simulation(comm, tmp_path, L=n * h, H=n * h, n=n, m=n, mu=mu, rho_f=rho, rule=rule, motion="fixed",
                      radius=a, position=f"[{centre[0]}, {centre[1]}, {centre[2]}]",
-                     dt=diffusion_number * h * h * rho / mu, extra=walls)
+                     dt=diffusion_number * h * h * rho / mu, extra=walls, passes=forcing_passes)
     flow, far = sim.flow, np.array([0.0, 0.0, speed])
     flow.u_fixed[:] = stokes_velocity(flow.xf_b, centre, a, far)
     flow.flux_fixed[:] = np.einsum("ij,ij->i", flow.u_fixed, flow.S_b)

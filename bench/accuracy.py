@@ -1,0 +1,66 @@
+"""Speed against accuracy of the particle coupling: Stokes drag error against wall time over the
+knobs (cells per diameter, volume-fraction rule, forcing passes, time step as the diffusion
+number ν dt/h²). Writes bench/results/accuracy.csv and accuracy.png and prints the table.
+
+    .venv/bin/python bench/accuracy.py            # about 5 minutes on one core
+
+The case is tests/test_coupling.py's: a fixed sphere in creeping flow (Re = 0.02) with the exact
+Stokes solution on every boundary face, so the reference is 6πμaU with no wall correction.
+"""
+import csv
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+from mpi4py import MPI
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "tests"))
+from test_coupling import stokes_run  # noqa: E402  (the validation case itself, not a copy)
+
+KNOBS = [  # cells per diameter, rule, forcing passes, diffusion number
+    (4, "nodes", 3, 0.1), (8, "nodes", 3, 0.1), (16, "nodes", 3, 0.1),
+    (4, "subcell", 3, 0.1), (8, "subcell", 3, 0.1), (16, "subcell", 3, 0.1),
+    (8, "subcell", 1, 0.1), (8, "subcell", 1, 0.4), (8, "subcell", 3, 0.4), (8, "subcell", 6, 0.4),
+]
+
+
+def main():
+    out = ROOT / "bench" / "results"
+    out.mkdir(parents=True, exist_ok=True)
+    rows = []
+    for cpd, rule, passes, diffusion in KNOBS:
+        folder = Path(tempfile.mkdtemp())
+        start = time.perf_counter()
+        ratio = stokes_run(MPI.COMM_SELF, folder, cpd, rule, steps=40, diffusion_number=diffusion,
+                           forcing_passes=passes)
+        seconds = time.perf_counter() - start
+        rows.append(dict(cells_per_diameter=cpd, volume_fraction=rule, forcing_passes=passes,
+                         diffusion_number=diffusion, drag_error=ratio[2] - 1, wall_seconds=seconds))
+        print(f"{cpd:3d} cells/d  {rule:8s} passes {passes}  ν dt/h² {diffusion:4.2f}:  "
+              f"drag error {100 * (ratio[2] - 1):+6.2f} %   {seconds:6.1f} s", flush=True)
+    with open(out / "accuracy.csv", "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    fig, ax = plt.subplots(figsize=(6, 4))
+    for rule, marker in (("nodes", "o"), ("subcell", "s")):
+        pick = [r for r in rows if r["volume_fraction"] == rule]
+        ax.scatter([r["wall_seconds"] for r in pick], [abs(r["drag_error"]) * 100 for r in pick], marker=marker, label=rule)
+        for r in pick:
+            ax.annotate(f'{r["cells_per_diameter"]}/d, {r["forcing_passes"]}p, {r["diffusion_number"]}',
+                        (r["wall_seconds"], abs(r["drag_error"]) * 100), fontsize=6)
+    ax.set_xscale("log"); ax.set_yscale("log")
+    ax.set_xlabel("wall time for 40 steps (s)"); ax.set_ylabel("|drag error| (%)")
+    ax.set_title("Stokes drag: error against cost"); ax.legend()
+    fig.tight_layout(); fig.savefig(out / "accuracy.png", dpi=120)
+    print(f"wrote {out / 'accuracy.csv'} and {out / 'accuracy.png'}")
+
+
+if __name__ == "__main__":
+    main()
