@@ -6,8 +6,9 @@ momentum that this patch adds to the fluid is taken from the particle: that is t
 torque (r × F, r from the particle centre to the cell centre).
 
 Where the patch happens. The flow solver calls :meth:`Coupling.exchange` between its momentum
-predictor and its projection (direct forcing, as in immersed-boundary methods), so the
-divergence-free face fluxes already honour the particles and the next step starts from them.
+predictor and its projection (direct forcing, as in immersed-boundary methods, ``forcing_passes``
+times), so the divergence-free face fluxes honour the particles; then once more after the
+projection (the paper's patch), where the particles are updated with all the momentum exchanged.
 
 The particle update, and why it is implicit. With M the fluid mass a particle covers
 (ρ_f Σ α V_cell) and ū* the mass-weighted predicted fluid velocity under it, the momentum that the

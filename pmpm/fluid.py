@@ -214,7 +214,8 @@ class FlowSolver:
         """Collective. Advance ``state`` in place by dt. ``source``: momentum source (n_local, 3) in
         m⁴/s² (force/ρ integrated over the cell), or None. ``patch(u_star, last)``: called (collectively)
         with the predicted velocity, which it may change in its owned rows, ``forcing_iterations``
-        times (``last`` true on the last). Returns diagnostics."""
+        times before the projection (``last`` false), then once after it (``last`` true).
+        Returns diagnostics."""
         rho, nu, V = self.rho, self.nu, self.volume
         u, p, flux = state.u, state.p, state.flux
         n_int = self.n_interior
@@ -252,7 +253,7 @@ class FlowSolver:
                 u_star[:, k] = column
             if patch is not None:  # the particles' direct forcing, before the projection (pmpm.coupling)
                 before = u_star[:self.n_owned].copy()
-                patch(u_star, forcing_pass == passes - 1)
+                patch(u_star, False)
                 if forcing_pass < passes - 1:
                     rhs[:self.n_owned] += V[:self.n_owned, None] * (u_star[:self.n_owned] - before) / dt
         self.mesh.update_ghosts(u_star)
@@ -292,6 +293,8 @@ class FlowSolver:
             flux[n_int:][outlet] -= c * self.a_b[outlet] * (0.0 - correction[self.B[outlet]])
         grad_c = self.gradient(correction, np.where(outlet, 0.0, correction[self.B]))
         u[:] = u_star - c * grad_c
+        if patch is not None:  # the paper's patch after the flow solve: the projection let fluid into the particles
+            patch(u, True)
         p += correction
         self.mesh.update_ghosts(u)
         self.mesh.update_ghosts(p)

@@ -184,3 +184,31 @@ def test_stokes_drag(tmp_path):
     assert ratios[8, "subcell"][2] == pytest.approx(1.0, abs=0.05)
     assert np.abs(ratios[8, "subcell"][:2]).max() < 0.01, "no sideways force"
     assert abs(ratios[8, "subcell"][2] - 1) < abs(ratios[4, "subcell"][2] - 1), "refinement helps"
+
+
+def settling_run(comm, tmp_path, cells_per_diameter, rule="subcell", lateral_diameters=6, steps=None):
+    """A sphere (d = 8 mm, ρp = 1500) settling from rest in a closed box of liquid (ρf = 1000,
+    μ = 0.1): returns (times, settling speeds, Schiller–Naumann speed with the Di Felice wall factor)."""
+    from pmpm.reference import terminal_velocity
+
+    d, rho_p, rho_f, mu = 0.008, 1500.0, 1000.0, 0.1
+    h = d / cells_per_diameter
+    n = int(round(lateral_diameters * d / h))
+    dt = 0.1 * h * h * rho_f / mu                       # diffusion number 0.1
+    steps = steps or int(round(0.5 / dt))
+    width = n * h
+    sim = simulation(comm, tmp_path, L=width, H=2 * width, n=n, m=2 * n, mu=mu, rho_f=rho_f, rho_p=rho_p,
+                     radius=d / 2, rule=rule, gravity="[0.0, 0.0, -9.81]", dt=dt,
+                     position=f"[{width / 2 + 0.1 * h}, {width / 2 - 0.2 * h}, {1.5 * width}]")
+    times, speeds = [], []
+    for _ in range(steps):
+        sim.advance(dt)
+        times.append(sim.time)
+        speeds.append(-sim.particles.v[0, 2])
+    unbounded = terminal_velocity(rho_p, rho_f, mu, d)
+    reynolds = rho_f * unbounded * d / mu
+    ratio = d / (width * 2 / np.sqrt(np.pi))            # d over the equal-area tube diameter
+    exponent = (3.3 + 0.085 * reynolds) / (1 + 0.1 * reynolds)
+    wall_factor = ((1 - ratio) / (1 - 0.33 * ratio)) ** exponent
+    return np.array(times), np.array(speeds), unbounded * wall_factor
+
