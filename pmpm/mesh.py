@@ -287,21 +287,32 @@ class Mesh:
     def find_owned_cells(self, points: np.ndarray, candidates: int = 16) -> np.ndarray:
         """Local. The owned cell holding each point (n, 3), or -1 where no owned cell holds it.
 
-        Candidates are the nearest owned cell centres; each is tested against its face planes
-        (cells are convex polyhedra), so a point on a shared face goes to the first candidate.
+        The nearest owned cell centre is tested first (it holds the point on regular meshes);
+        points farther from every centre than the largest circumradius lie in no owned cell; the
+        few others are tested against their ``candidates`` nearest cells. Tests use the face planes
+        (cells are convex), so a point on a shared face goes to the first candidate that holds it.
         """
         points = np.asarray(points, float).reshape(-1, 3)
         found = np.full(len(points), -1, np.int64)
         if self.n_owned_cells == 0 or len(points) == 0:
             return found
         if self._center_tree is None:
-            self._center_tree = cKDTree(self.cell_center[:self.n_owned_cells])
+            owned = slice(0, self.n_owned_cells)
+            self._center_tree = cKDTree(self.cell_center[owned])
+            reach = self.vertex_xyz[self.cell_vertices[owned]] - self.cell_center[owned, None, :]
+            self._circumradius = float(np.sqrt(np.einsum("cvd,cvd->cv", reach, reach).max()))
+        distance, nearest = self._center_tree.query(points, k=1)
+        near = np.flatnonzero(distance <= self._circumradius * (1 + 1e-9))
+        inside = self.contains(nearest[near], points[near])
+        found[near[inside]] = nearest[near[inside]]
+        rest = near[~inside]
         k = min(candidates, self.n_owned_cells)
-        _, near = self._center_tree.query(points, k=k)
-        near = near.reshape(len(points), k)
-        inside = self.contains(near, points[:, None, :])
-        hit = inside.any(axis=1)
-        found[hit] = near[hit, np.argmax(inside[hit], axis=1)]
+        if len(rest) and k > 1:
+            _, others = self._center_tree.query(points[rest], k=k)
+            others = others.reshape(len(rest), k)
+            inside = self.contains(others, points[rest][:, None, :])
+            hit = inside.any(axis=1)
+            found[rest[hit]] = others[hit, np.argmax(inside[hit], axis=1)]
         return found
 
     def contains(self, cells: np.ndarray, points: np.ndarray) -> np.ndarray:

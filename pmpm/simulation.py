@@ -116,6 +116,7 @@ class Simulation:
         self.times = StageTimes()
         self.time, self.step = 0.0, 0
         self.removed = 0  # particles that left the domain
+        self.collision_totals = {}  # summed collision statistics (pmpm.collisions.advance_with_collisions)
         self.particles = ParticleState.empty()
         self.injectors = build_injectors(case)
         self.walls = build_walls(case, mesh) if (case.collisions or case.field_forces or case.deposition) else None
@@ -220,7 +221,9 @@ class Simulation:
             with Timer(self.times, "collisions" if self.settings else "motion"):
                 accelerate(state, force, torque, dt / substeps)
                 if self.settings is not None:
-                    self.collision_stats = advance_with_collisions(state, self.walls, dt / substeps, self.settings)
+                    stats = advance_with_collisions(state, self.walls, dt / substeps, self.settings)
+                    for key, value in stats.items():
+                        self.collision_totals[key] = self.collision_totals.get(key, 0) + int(value)
                 else:
                     free = state.motion != 1
                     state.x[free] += state.v[free] * dt / substeps
@@ -337,6 +340,8 @@ class Simulation:
         state = self.particles
         result = {"particle_kinetic_energy": 0.5 * float(np.sum(state.mass * np.sum(state.v ** 2, axis=1))),
                   "particle_momentum": (state.mass[:, None] * state.v).sum(axis=0)}
+        if self.settings is not None:
+            result["collisions"] = dict(self.collision_totals)
         if self.flow is not None:
             flow, fluid = self.flow, self.fluid_state
             owned = slice(0, self.mesh.n_owned_cells)
