@@ -67,7 +67,8 @@ class Mesh:
             tets = comm.bcast(tets, root=0)
             serial_vertices = lambda serial: tets[serial]
 
-        def name_box_faces(mesh, centers, normals):
+        def name_box_faces(mesh, faces):
+            centers = mesh.face_center[faces]
             extent = upper - lower
             index = np.full(len(centers), -1, np.int64)
             for axis in range(3):
@@ -103,9 +104,9 @@ class Mesh:
         serial_cells, tagged_faces, tag_names = comm.bcast((serial_cells, tagged_faces, tag_names), root=0)
         serial_vertices = lambda serial: serial_cells[serial]
 
-        def name_file_faces(mesh, centers, normals):
+        def name_file_faces(mesh, faces):
             # a boundary face is found in the file's list of tagged faces by its sorted vertex ids
-            keys = np.sort(mesh.vertex_serial[mesh._boundary_face_vertices], axis=1)[:, :3]
+            keys = np.sort(mesh.vertex_serial[mesh.face_vertices[faces]], axis=1)[:, :3]
             where = match_rows(keys, tagged_faces[0])
             index = np.where(where >= 0, tagged_faces[1][np.maximum(where, 0)], len(tag_names))
             names = tag_names + [UNNAMED_BOUNDARY]
@@ -125,7 +126,8 @@ class Mesh:
         """Collective. Distribute ``dm`` and build the arrays (use the ``from_*`` constructors).
 
         ``serial_vertices(serial cell numbers)`` gives those cells' vertices in the undistributed
-        mesh, PETSc order; ``name_boundary_faces(mesh, centers, area vectors)`` names boundary faces.
+        mesh, PETSc order; ``name_boundary_faces(mesh, faces)`` gives the boundary index of each of
+        the domain-boundary faces ``faces`` and the list of boundary names (collective).
         """
         self.comm = comm
         self.cell_type = cell_type
@@ -195,13 +197,11 @@ class Mesh:
 
         # boundary names
         boundary = np.flatnonzero(self.face_cells[:, 1] < 0)
-        self._boundary_face_vertices = self.face_vertices[boundary]
-        index, self.boundary_names = name_boundary_faces(self, self.face_center[boundary], self.face_area_vec[boundary])
+        index, self.boundary_names = name_boundary_faces(self, boundary)
         if (index < 0).any():
             raise RuntimeError("a boundary face could not be named")
         self.face_boundary = np.full(len(self.face_cells), -1, np.int64)
         self.face_boundary[boundary] = index
-        del self._boundary_face_vertices
 
         self.lower, self.upper = np.empty(3), np.empty(3)
         comm.Allreduce(self.vertex_xyz.min(axis=0, initial=np.inf), self.lower, op=MPI.MIN)
@@ -229,9 +229,11 @@ class Mesh:
         volume = np.bincount(face_cell, pyramid, minlength=n_local)
         moment = pyramid[:, None] * 0.75 * (center - cell_mean[face_cell])
         offset = np.stack([np.bincount(face_cell, moment[:, d], minlength=n_local) for d in range(3)], axis=1)
+        error = None
         if (volume <= 0).any():
             bad = int(np.argmax(volume <= 0))
-            raise CaseError(f"mesh: cell {self.cell_serial[bad]} has volume {volume[bad]:.3g} m³ (inverted or degenerate)")
+            error = CaseError(f"mesh: cell {self.cell_serial[bad]} has volume {volume[bad]:.3g} m³ (inverted or degenerate)")
+        agree(self.comm, error)
         self.cell_volume = volume
         self.cell_center = cell_mean + offset / volume[:, None]
 
