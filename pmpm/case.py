@@ -420,8 +420,6 @@ def check_consistency(case: Case) -> None:
     if run.output_every is None:
         object.__setattr__(case.run, "values", {**run.values, "output_every": run.end_time / 20})
     # declared so that the reference lists them, refused until they work (no silent no-ops)
-    if run.checkpoint_every is not None:
-        raise CaseError(f"{name}: [run] checkpoint_every: checkpoints are not available yet in this version")
     if run.adaptive_cfl:
         raise CaseError(f"{name}: [run] adaptive_cfl: an adaptive time step is not available yet; set a fixed dt")
     if case.box is not None:

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 from mpi4py import MPI
 
-from . import io
+from . import checkpoint, io
 from .case import Case, case_path, load_case, suggest
 from .errors import CaseError, NumericalError
 from .collisions import (advance_with_collisions, build_walls, check_initial_particles, collision_settings,
@@ -73,8 +73,9 @@ class Timer:
 class Progress:
     """Compact progress lines on rank 0: step, simulated time, wall time, ETA."""
 
-    def __init__(self, comm, end_time: float, quiet: bool, every_seconds: float = 5.0):
+    def __init__(self, comm, end_time: float, quiet: bool, every_seconds: float = 5.0, start_time: float = 0.0):
         self.comm, self.end_time, self.quiet, self.every = comm, end_time, quiet, every_seconds
+        self.start_time = start_time
         self.start = self.last = wallclock.perf_counter()
 
     def update(self, step: int, time: float, extra: str = "", force: bool = False):
@@ -83,7 +84,8 @@ class Progress:
             return
         self.last = now
         elapsed = now - self.start
-        eta = elapsed * (self.end_time - time) / time if time > 0 else math.nan
+        done = time - self.start_time
+        eta = elapsed * (self.end_time - time) / done if done > 0 else math.nan
         print0(self.comm, f"step {step:7d}  t = {time:.6g} s  ({100 * time / self.end_time:5.1f} %)  "
                           f"wall {elapsed:8.1f} s  ETA {eta:8.1f} s{extra}")
 
@@ -92,12 +94,14 @@ def run_from_arguments(comm, arguments) -> None:
     """Collective. Everything ``python -m pmpm`` does after parsing the command line."""
     case = load_case(case_path(arguments.case), arguments.set)
     output = Path(arguments.output) if arguments.output else case.folder / "output"
-    if arguments.restart:
-        raise CaseError("--restart: restarting from a checkpoint is not available yet in this version")
+    restart = checkpoint.read(comm, Path(arguments.restart)) if arguments.restart else None
     start = wallclock.perf_counter()
     mesh = build_mesh(comm, case)
     check_boundaries(case, mesh)
     simulation = Simulation(comm, case, mesh, quiet=arguments.quiet)
+    if restart is not None:
+        checkpoint.restore(comm, restart, mesh, simulation, Path(arguments.restart))
+        print0(comm, f"pmpm: restarting from {arguments.restart} at t = {simulation.time:g} s, step {simulation.step}")
     setup_seconds = wallclock.perf_counter() - start
     print0(comm, simulation.describe(setup_seconds))
     if arguments.check:
@@ -167,11 +171,14 @@ class Simulation:
         with_fluid = self.flow is not None
         self.particle_writer = io.ParticleWriter(self.comm, output, with_fluid)
         self.field_writer = io.FieldWriter(self.comm, output, self.mesh, with_fluid)
-        progress = Progress(self.comm, run.end_time, self.quiet)
+        progress = Progress(self.comm, run.end_time, self.quiet, start_time=self.time)
         started = wallclock.perf_counter()
         self.write_outputs()
-        next_output = run.output_every
+        next_output = (math.floor(self.time / run.output_every + 1e-9) + 1) * run.output_every
+        every = run.checkpoint_every
+        next_checkpoint = (math.floor(self.time / every + 1e-9) + 1) * every if every else math.inf
         status = "completed"
+        checkpoint_time = self.time
         try:
             while self.time < run.end_time * (1 - 1e-12):
                 dt = min(run.dt, run.end_time - self.time)
@@ -182,11 +189,20 @@ class Simulation:
                         self.write_outputs()
                     while next_output <= self.time * (1 + 1e-9):
                         next_output += run.output_every
+                if self.time >= next_checkpoint * (1 - 1e-9):
+                    with Timer(self.times, "checkpoint"):
+                        checkpoint.write(self.comm, output, self.mesh, self)
+                    checkpoint_time = self.time
+                    while next_checkpoint <= self.time * (1 + 1e-9):
+                        next_checkpoint += every
                 progress.update(self.step, self.time, f"  particles {len(self.particles.id)}")
                 if run.wall_time_limit and wallclock.perf_counter() - started > run.wall_time_limit:
                     status = "stopped at the wall-time limit"
                     self.write_outputs()
                     break
+            if every and checkpoint_time != self.time:  # the final state, for a later continuation
+                with Timer(self.times, "checkpoint"):
+                    checkpoint.write(self.comm, output, self.mesh, self)
         except NumericalError:
             status = "numerical failure"
             self.restore_last_good_state()   # SPEC §2: the last good state is written first

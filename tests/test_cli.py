@@ -206,3 +206,29 @@ def test_petsc_options_reach_the_solver_and_failure_exits_3(tmp_path):
         assert np.isfinite(f["output/000001/velocity"][...]).all()
     summary = json.loads((folder / "output" / "summary.json").read_text())
     assert summary["status"] == "numerical failure"
+
+
+def test_checkpoint_and_restart_continue_the_run(tmp_path):
+    """A run stopped at t = 0.02 and restarted from its checkpoint (on another number of ranks)
+    ends where the uninterrupted run ends; a bad checkpoint is refused with exit 2."""
+    folder = make_case(tmp_path, FLOW.replace("output_every = 0.02", "output_every = 0.02\ncheckpoint_every = 0.02"))
+    whole = run_pmpm([folder, "--quiet", "--output", tmp_path / "whole"], ranks=1)
+    assert whole.returncode == 0, whole.stderr
+    assert (tmp_path / "whole" / "checkpoint.h5").exists() and not (tmp_path / "whole" / "checkpoint.h5.tmp").exists()
+    half = run_pmpm([folder, "--quiet", "--output", tmp_path / "half", "--set", "run.end_time=0.02"], ranks=1)
+    assert half.returncode == 0, half.stderr
+    rest = run_pmpm([folder, "--quiet", "--output", tmp_path / "rest", "--restart", tmp_path / "half" / "checkpoint.h5"])
+    assert rest.returncode == 0, rest.stderr
+    assert "restarting from" in rest.stdout
+    a = np.loadtxt(tmp_path / "whole" / "particles.csv", delimiter=",", skiprows=1)
+    b = np.loadtxt(tmp_path / "rest" / "particles.csv", delimiter=",", skiprows=1)
+    last_a, last_b = a[a[:, 0] == a[:, 0].max()], b[b[:, 0] == b[:, 0].max()]
+    assert last_a[0, 0] == last_b[0, 0] == pytest.approx(0.04)
+    np.testing.assert_allclose(last_b[:, :13], last_a[:, :13], rtol=1e-8, atol=1e-12)
+    import h5py
+    with h5py.File(tmp_path / "whole" / "fields.h5", "r") as f, h5py.File(tmp_path / "rest" / "fields.h5", "r") as g:
+        u_whole, u_rest = f["output/000002/velocity"][...], g["output/000001/velocity"][...]
+        np.testing.assert_allclose(u_rest, u_whole, rtol=0, atol=1e-8 * np.abs(u_whole).max())
+    (tmp_path / "junk.h5").write_text("not hdf5")
+    bad = run_pmpm([folder, "--quiet", "--restart", tmp_path / "junk.h5"])
+    assert bad.returncode == 2 and "not a pmpm checkpoint" in bad.stderr and "Traceback" not in bad.stderr
