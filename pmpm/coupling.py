@@ -19,12 +19,12 @@ patch exchanges is M (ū* − Vⁿ), so the paper's explicit update is
 which amplifies a velocity error by (M − m)/m each step: it oscillates and grows once
 ρ_p/ρ_f < 1/2, and rings well before that. pmpm solves particle and covered fluid together,
 
-    (m + (1 − θ) M) (Vⁿ⁺¹ − Vⁿ) = dt F_ext + M (ū* − Vⁿ),     θ = min(1, ρ_p/ρ_f),
+    (m + (1 − θ) M) (Vⁿ⁺¹ − Vⁿ) = dt F_ext + M (ū* − Vⁿ),     θ = min(1, m/M),
 
-(the same for ω with the moments of inertia), whose amplification factor (1 − θ)M − … stays inside
-(−1, 1) for every density ratio. For ρ_p ≥ ρ_f (θ = 1) it is the paper's update exactly; for
-lighter particles it adds (1 − θ) M to the particle's inertia, an error in transients only
-(terminal velocities are unchanged). ``[coupling] update = "explicit"`` keeps θ = 1 always, and
+(the same for ω with the moments of inertia), which moves V at most all the way to ū*, never past
+it: stable for every density ratio and every mesh. Where m ≥ M (ρ_p ≥ ρ_f with M ≈ ρ_f V) it is
+the paper's update exactly; for lighter particles it adds M − m to the particle's inertia, an
+error in transients only (terminal velocities are unchanged). ``[coupling] update = "explicit"`` keeps θ = 1 always, and
 the run stops (exit 3) when a particle's velocity starts to ring.
 
 Volume fraction rules (``[coupling] volume_fraction``): ``nodes`` (the paper: the share of the
@@ -185,10 +185,14 @@ class Coupling:
         covered, momentum, angular, moment = sums[:, 0], sums[:, 1:4], sums[:, 4:7], sums[:, 7]
 
         free = state.movable
-        theta = np.ones(n) if self.explicit else np.minimum(1.0, state.density / self.rho)
         m, inertia = state.mass, state.inertia
+        # θ = min(1, m/M): the covered fluid mass M, not ρf V, decides (on a coarse mesh M can be
+        # several times the sphere's own volume of fluid); likewise for the moments of inertia
+        tiny = np.finfo(float).tiny
+        theta = np.ones(n) if self.explicit else np.minimum(1.0, m / np.maximum(covered, tiny))
+        theta_spin = np.ones(n) if self.explicit else np.minimum(1.0, inertia / np.maximum(moment, tiny))
         dv = (dt * external_force + momentum) / (m + (1 - theta) * covered)[:, None]
-        dw = (dt * external_torque + angular) / (inertia + (1 - theta) * moment)[:, None]
+        dw = (dt * external_torque + angular) / (inertia + (1 - theta_spin) * moment)[:, None]
         force = np.where(free[:, None], m[:, None] * dv / dt - external_force, momentum / dt)
         torque = np.where(free[:, None], inertia[:, None] * dw / dt - external_torque, angular / dt)
         if self.explicit:
