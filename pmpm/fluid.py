@@ -149,7 +149,12 @@ class FlowSolver:
         nu = self.nu
         coefficient = np.concatenate([nu * self.a, np.zeros(len(self.a_b))])
         self.momentum = []
+        # the three matrices differ only on symmetry faces: without them, one matrix and KSP serve all
+        symmetry = self.comm.allreduce(bool((self.kind == SYMMETRY).any()), op=MPI.LOR)
         for component in range(3):
+            if component and not symmetry:
+                self.momentum.append(self.momentum[0])
+                continue
             boundary = nu * self.a_b * np.where(self.dirichlet_u, 1.0, 0.0)
             boundary += nu * self.a_b * np.where(self.kind == SYMMETRY, self.normal_b[:, component] ** 2, 0.0)
             diagonal = self.volume / dt + np.bincount(self.B, boundary, minlength=self.n_local)
@@ -196,14 +201,15 @@ class FlowSolver:
     def convection_term(self, u, flux, grad_u):
         """Σ_f F_f u_f (n_local, 3): the explicit convection term of the predictor."""
         F = flux[:self.n_interior]
-        forward = (F >= 0)[:, None]
         if self.scheme == "central":
             u_f = self.interpolate(u)
         else:
-            u_f = np.where(forward, u[self.P], u[self.N])
+            # gather the upwind cell only (not both sides and then choose: half the passes and memory)
+            forward = F >= 0
+            upwind = np.where(forward, self.P, self.N)
+            u_f = u[upwind]
             if self.scheme == "linear_upwind":
-                u_f = u_f + np.where(forward, np.einsum("fi,fik->fk", self.r_P, grad_u[self.P]),
-                                     np.einsum("fi,fik->fk", self.r_N, grad_u[self.N]))
+                u_f += np.einsum("fi,fik->fk", np.where(forward[:, None], self.r_P, self.r_N), grad_u[upwind])
         F_b = flux[self.n_interior:]
         face = np.concatenate([F[:, None] * u_f, F_b[:, None] * self.boundary_velocity(u)])
         return self.D @ face

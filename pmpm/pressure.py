@@ -133,6 +133,13 @@ class CellKSP:
         self.iterations = 0  # of the last solve
         self.total_iterations = 0
 
+    def _written(self) -> None:
+        """Tell PETSc that the numpy arrays under b and x were written: PETSc caches a vector's norm
+        until its state changes, and writes through numpy do not change it, so without this KSP
+        would measure rtol against ‖b‖ of an earlier solve."""
+        self._b.stateIncrease()
+        self._x.stateIncrease()
+
     def solve(self, rhs: np.ndarray, solution: np.ndarray, step: int = 0, time: float = 0.0) -> int:
         """Collective. Solve A x = rhs; ``solution[:n_owned]`` is the initial guess and receives x.
 
@@ -153,6 +160,7 @@ class CellKSP:
         """
         self._b_array[:] = rhs[:self.n_owned]
         self._x_array[:] = solution[:self.n_owned]
+        self._written()
         if self.null_space is not None:
             self.null_space.remove(self._b)
         self.ksp.solve(self._b, self._x)
@@ -172,6 +180,7 @@ class CellKSP:
         """Collective. (‖b − A x‖, ‖b‖) over all ranks, null space removed from b."""
         self._b_array[:] = rhs[:self.n_owned]
         self._x_array[:] = solution[:self.n_owned]
+        self._written()
         if self.null_space is not None:
             self.null_space.remove(self._b)
         r = self._b.duplicate()

@@ -225,6 +225,25 @@ def test_divergence_after_projection_within_ksp_tolerance(comm):
 
 
 @pytest.mark.mpi
+def test_pressure_rtol_is_relative_to_each_right_hand_side(comm):
+    """Regression: PETSc caches ‖b‖ until the Vec's state changes, and pmpm writes b through numpy.
+    A second solve with a right-hand side 1e6 times smaller must still reach ‖b − A p‖ ≤ rtol ‖b‖ of
+    its own b (it stopped at ‖b_first‖ · rtol, i.e. 2e-3 relative, before the fix)."""
+    mesh = Mesh.from_box(comm, (0, 0, 0), (1, 1, 1), (8, 8, 8), "hex")
+    solver = FlowSolver(mesh, fc.fluid(pressure_rtol=1e-8), {"xmax": fc.boundary(type="outlet")})
+    assert not solver.pressure.pure_neumann
+    rng = np.random.default_rng(comm.rank)
+    for scale in (1.0, 1e-6, 1.0):
+        b = scale * rng.standard_normal(solver.n_local)
+        p = np.zeros(solver.n_local)
+        solver.pressure.solve(b, p)
+        residual, _ = solver.pressure.residual_norm(b, p)
+        norm = np.sqrt(comm.allreduce(float(np.sum(fc.owned(solver, b) ** 2))))
+        assert residual <= 1e-8 * norm, f"scale {scale}: ‖r‖/‖b‖ = {residual / norm:.2e}"
+    solver.destroy()
+
+
+@pytest.mark.mpi
 def test_channel_mass_balance(comm):
     """Uniform inlet, outlet, walls (developing channel flow, Re 20): inflow = outflow, i.e.
     |Σ boundary fluxes| ≤ 1e-8 of the inflow, and max |div u| × h / U ≤ 1e-7."""
