@@ -17,8 +17,9 @@ Impulse at a contact with unit normal n (towards particle i) and relative contac
     Δv_i = J/m_i,  Δω_i = (a_i × J)/I_i  with a_i = -r_i n the arm to the contact point
 
 Fixed, prescribed and deposited particles and walls have infinite mass. A contact approaching
-slower than ``rest_speed`` (of the order of |g| dt) is made inelastic, so resting contacts come to
-rest instead of bouncing with ever smaller, ever more frequent bounces.
+slower than ``rest_speed`` (of the order of |g| dt) is a resting contact: inelastic (e = 0), and
+solved together with the resting contacts around it (a stack, a bed) by a small linear
+complementarity solve instead of a cascade of ever smaller, ever more frequent bounces.
 """
 from __future__ import annotations
 
@@ -37,6 +38,10 @@ DEFAULT_RESTITUTION, DEFAULT_FRICTION, DEFAULT_ROLLING_FRICTION = 0.9, 0.3, 0.0
 APPROACH_TOL = 1e-9   # relative: approach speeds below 1e-9 |u| are round-off, not contacts
 TOUCH_TOL = 1e-9      # relative: spheres this close count as touching
 CONTACT_TOL = 1e-6    # relative: resting contacts are those this close at the start of a step
+LOCAL_REACH = 6       # a slow contact mid-step settles the particles within this many radii
+GS_SWEEPS = 50        # Gauss–Seidel sweeps for the friction of coupled resting contacts
+DENSE_ROWS = 600      # contact systems up to this size are solved with dense matrices
+PARALLEL = 1 - 1e-4   # wall contacts of one particle with normals closer than ~0.8° count as one
 GAP_TOL = 1e-7        # relative to the radius: a predicted wall contact further than this is rescheduled
 
 
@@ -233,7 +238,6 @@ class CollisionSettings:
     rest_speed: float = 0.0
     max_events_per_particle: int = 50
     min_events: int = 1000
-    max_sweeps: int = 500
 
 
 def collision_settings(case) -> CollisionSettings:
@@ -324,7 +328,11 @@ def wall_contact_times(p, w, radius, a, b, c, n, horizon, quiet=0.0) -> np.ndarr
     touching = (gap <= TOUCH_TOL * radius) & ~behind
     tau = np.full(k, np.inf)
     tau[touching & (closing > np.maximum(quiet, APPROACH_TOL * np.linalg.norm(w, axis=1)))] = 0.0
-    far = np.flatnonzero(~touching & ~behind)
+    # the distance to a triangle is at least the height over its plane: a sphere that stays
+    # above (height - r not reached at the normal speed) never touches it
+    wn = np.sum(w * n, 1)
+    out_of_reach = height - radius > np.maximum(-wn, 0.0) * horizon
+    far = np.flatnonzero(~touching & ~behind & ~out_of_reach)
     if len(far):
         tau[far] = swept_triangle_times(p[far], w[far], radius[far], a[far], b[far], c[far], n[far], height[far])
     tau[tau > horizon] = np.inf
@@ -336,7 +344,7 @@ def swept_triangle_times(p, w, radius, a, b, c, n, height) -> np.ndarray:
     the face (plane distance r, foot inside), the three edges (distance r to the line, foot on the
     segment) and the three vertices. Contacts reached from behind the plane do not count."""
     wn = np.sum(w * n, 1)
-    with np.errstate(divide="ignore", invalid="ignore"):
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         t_face = np.where((wn < 0) & (height > radius), (height - radius) / -wn, np.inf)
     foot = p + w * np.where(np.isfinite(t_face), t_face, 0.0)[:, None] - n * radius[:, None]
     t_face[~inside_triangle(foot, a, b, c, n)] = np.inf
@@ -395,7 +403,10 @@ def advance_with_collisions(state: ParticleState, walls: Walls | None, dt: float
 
     Free particles move with constant velocity between contacts; fixed and deposited ones stay
     put, prescribed ones keep their velocity (all three have infinite mass); rigid walls move at
-    the end of the step. Returns counts: particle_collisions, wall_collisions, events, capped.
+    the end of the step (see ``EventLoop`` for the algorithm). Returns counts of the step:
+    particle_collisions, wall_collisions, resting_contacts (solved at its start), events,
+    deposited, fallbacks (ill-posed contact sets solved by sweeps) and capped (bool: the event
+    budget ran out and the step ended with every contact left made inelastic).
 
     Rolling friction: at a resting, rolling contact with a wall (normal impulse J_n over the step)
     a torque μ_r N r opposes rolling; with the rolling constraint this slows the rolling velocity
@@ -410,23 +421,24 @@ class EventLoop:
 
     Notes
     -----
-    1. Resting contacts: the contacts touching at the start of the step that approach slower than
-       ``rest_speed`` are solved together, inelastic with Coulomb friction, by Jacobi sweeps over
-       the contact list with mass splitting (each body's mass shared among its contacts), until
-       the velocity changes fall below 1e-4 ``rest_speed``. A stack or a bed thus settles in a few
-       vectorised sweeps instead of thousands of tiny events.
+    1. Resting contacts, at the start of the step: every contact touching (gap <= 1e-6 r), or
+       closing a face or pair gap that shuts within the step, and approaching slower than
+       ``rest_speed``, is solved at once (``solve_inelastic``): e = 0, Coulomb friction, never
+       pulling; a contact with a gap may close it, an overlap opens at 0.2 overlap / dt.
     2. Impacts, in time order: each particle holds its position at its own last event time
        (``clock``); a counter per particle invalidates queued events once its velocity changes.
        Candidates come from a k-d tree of the step's initial positions, searched with a margin
-       that bounds how far any particle can move in the step (the largest speed seen × dt).
-       Touching contacts approaching slower than 1e-3 ``rest_speed`` are left to the next step's
-       resting-contact solve.
-    3. Past the event budget, the contacts left are solved as in 1 and everything flies freely to
-       the end of the step.
+       that bounds how far any particle can move in the step (the largest speed seen × dt). A
+       slow impact mid-step settles the resting contacts around it as in 1
+       (``settle_locally``). Touching contacts approaching slower than 1e-3 ``rest_speed`` are
+       left to the next step.
+    3. Past the event budget, every touching contact is solved as in 1 and everything flies
+       freely to the end of the step (``capped`` in the returned counts).
     """
 
     def __init__(self, state, walls, dt, settings):
         self.state, self.walls, self.dt, self.settings = state, walls, float(dt), settings
+        self.end = self.dt * (1 - 1e-9)
         n = len(state)
         self.free = state.movable.copy()          # whose velocities respond to contacts
         stays = (state.motion == FIXED) | state.deposited
@@ -444,7 +456,7 @@ class EventLoop:
         self.quiet = 1e-3 * settings.rest_speed
         self.heap, self.seq = [], 0
         self.stats = {"particle_collisions": 0, "wall_collisions": 0, "resting_contacts": 0, "events": 0,
-                      "capped": False, "deposited": 0}
+                      "capped": False, "deposited": 0, "fallbacks": 0}
         self.max_events = max(settings.max_events_per_particle * n, settings.min_events)
         self.has_walls = walls is not None and len(walls) > 0 and bool(self.free.any())
         if self.has_walls:
@@ -465,8 +477,7 @@ class EventLoop:
                 self.stats["capped"] = True
                 self.advance_to(np.arange(len(self.state)), t)
                 self.heap.clear()
-                contacts = self.touching_contacts(t)
-                self.solve_inelastic(contacts, bias_time=None)
+                self.solve_inelastic(self.touching_contacts(t), self.dt - t)
                 break
             self.stats["events"] += 1
             if kind == 0:
@@ -486,31 +497,40 @@ class EventLoop:
             self.walls.move_rigid(self.dt)
 
     # -- resting contacts, all at once ------------------------------------------------------------
-    def touching_contacts(self, t) -> dict:
-        """Every touching particle–particle and particle–wall contact at time t (all clocks at t).
+    def touching_contacts(self, t, reach=0.0, members=None) -> dict:
+        """Particle–particle and particle–wall contacts at time t whose gap is at most ``reach``
+        (m) beyond touching, among ``members`` (default: all particles; their clocks at t).
 
         Returns arrays: i, j (j = n for a wall), normal (towards i), arm_i, arm_j (centre to contact
-        point), u_wall, mu, mu_r, gap (m), wall (bool), k (triangle, −1 for pairs).
+        point), u_wall, mu, mu_r, gap (m), wall (bool), face (bool: a wall contact inside the
+        triangle's face), k (triangle, −1 for pairs).
         """
         state, n = self.state, len(self.state)
         x, r = state.x, self.radius
         parts = []
-        if n > 1:
-            pairs = self.tree.query_pairs(2 * self.r_max * (1 + CONTACT_TOL) + 2 * self.speed * t,
-                                          output_type="ndarray")
+        span = 2 * self.r_max * (1 + CONTACT_TOL) + reach
+        if members is None:
+            members = np.arange(n)
+            pairs = (self.tree.query_pairs(span + 2 * self.speed * t, output_type="ndarray") if n > 1
+                     else np.zeros((0, 2), np.int64))
+        else:
+            pairs = members[cKDTree(x[members]).query_pairs(span, output_type="ndarray")] if len(members) > 1 \
+                else np.zeros((0, 2), np.int64)
+        if len(pairs):
             i, j = pairs[:, 0], pairs[:, 1]
             dx = x[i] - x[j]
             dist = np.sqrt((dx * dx).sum(1))
             gap = dist - (r[i] + r[j])
-            keep = (gap <= CONTACT_TOL * (r[i] + r[j])) & (self.free[i] | self.free[j]) & (dist > 0)
+            keep = (gap <= CONTACT_TOL * (r[i] + r[j]) + reach) & (self.free[i] | self.free[j]) & (dist > 0)
             i, j, dx, dist, gap = i[keep], j[keep], dx[keep], dist[keep], gap[keep]
             normal = dx / dist[:, None]
             m = len(i)
             parts.append(dict(i=i, j=j, normal=normal, arm_i=-r[i, None] * normal, arm_j=r[j, None] * normal,
                               u_wall=np.zeros((m, 3)), mu=np.full(m, self.settings.friction), mu_r=np.zeros(m),
-                              gap=gap, wall=np.zeros(m, bool), k=np.full(m, -1)))
+                              gap=gap, wall=np.zeros(m, bool), face=np.zeros(m, bool), k=np.full(m, -1)))
         if self.has_walls:
-            p, k = self.wall_candidates(np.flatnonzero(self.free), r * CONTACT_TOL)
+            mobile = members[self.free[members]]
+            p, k = self.wall_candidates(mobile, r[mobile] * CONTACT_TOL + reach)
             if len(p):
                 a, b, c, nf, ctr = self.walls.geometry_at(k, t)
                 q, face = closest_points_on_triangles(x[p], a, b, c)
@@ -518,113 +538,131 @@ class EventLoop:
                 height = ((x[p] - a) * nf).sum(1)
                 dist = np.sqrt((sep * sep).sum(1))
                 gap = np.where(face, height, dist) - r[p]
-                keep = (gap <= CONTACT_TOL * r[p]) & (height >= np.where(face, -r[p], 0.0)) & (face | (dist > 0))
+                keep = ((gap <= CONTACT_TOL * r[p] + reach) & (height >= np.where(face, -r[p], 0.0))
+                        & (face | (dist > 0)))
                 p, k, q, face, sep, dist, gap, nf, ctr = (arr[keep] for arr in (p, k, q, face, sep, dist, gap, nf, ctr))
                 normal = np.where(face[:, None], nf, sep / np.maximum(dist, 1e-300)[:, None])
                 m = len(p)
                 parts.append(dict(i=p, j=np.full(m, n), normal=normal, arm_i=-r[p, None] * normal,
                                   arm_j=np.zeros((m, 3)), u_wall=self.walls.surface_velocity(k, q, ctr),
                                   mu=self.walls.friction[k], mu_r=self.walls.rolling_friction[k], gap=gap,
-                                  wall=np.ones(m, bool), k=k))
+                                  wall=np.ones(m, bool), face=face, k=k))
         if not parts:
             return {}
         return {key: np.concatenate([part[key] for part in parts]) for key in parts[0]}
 
     def settle(self):
-        """Solve the resting contacts of the step's start together (Notes, 1)."""
-        contacts = self.touching_contacts(0.0)
+        """Solve together the slow contacts of the step's start (Notes, 1)."""
+        self.stats["resting_contacts"] += self.settle_contacts(0.0, None)
+
+    def settle_locally(self, t, seeds):
+        """A slow contact mid-step: solve together the slow contacts of the particles ``seeds``
+        and of the particles around them, instead of a cascade of tiny events."""
+        x_seeds = self.position(np.asarray(seeds), t)
+        found = self.tree.query_ball_point(x_seeds, LOCAL_REACH * self.r_max + 2 * self.speed * self.dt) \
+            if self.tree is not None else [[]]
+        members = np.unique(np.concatenate([np.asarray(seeds, np.int64)] + [np.asarray(f, np.int64) for f in found]))
+        self.advance_to(members, t)
+        v_before, w_before = self.v[members].copy(), self.state.omega[members].copy()
+        self.settle_contacts(t, members)
+        change = (np.abs(self.v[members] - v_before).max(1)
+                  + self.radius[members] * np.abs(self.state.omega[members] - w_before).max(1))
+        moved = change > 1e-6 * self.quiet  # below: the round-off of the solve, events stay valid
+        for idx in members[moved & self.free[members]]:
+            self.changed(int(idx), t)
+
+    def settle_contacts(self, t, members) -> int:
+        """Solve the slow contacts at time t among ``members`` (None: all): those touching, and
+        those within ``rest_speed`` × the time left of touching (a face or another particle), so
+        that none shuts within the step unseen. Returns their number."""
+        horizon = self.dt - t
+        contacts = self.touching_contacts(t, reach=self.settings.rest_speed * horizon, members=members)
         if not contacts or len(contacts["i"]) == 0:
-            return
-        i, j = contacts["i"], contacts["j"]
-        n = len(self.state)
+            return 0
         u = self.relative_velocity(contacts)
         closing = -(u * contacts["normal"]).sum(1)
-        slow = closing < self.settings.rest_speed
-        contacts = {key: value[slow] for key, value in contacts.items()}
-        # touching a deposition wall or a deposited particle: deposit
-        i, j, k = contacts["i"], contacts["j"], contacts["k"]
-        deposited = np.append(self.state.deposited, False)
-        sticky = np.where(contacts["wall"], self.walls.deposition[k] if self.has_walls else False, deposited[j])
-        for idx in np.unique(i[sticky & self.free[i]]):
-            self.deposit(idx, 0.0, reschedule=False)
+        touching = contacts["gap"] <= CONTACT_TOL * self.radius[contacts["i"]]
+        # an edge or vertex at a gap is left to the events: the distance to it is not linear in time
+        slow = (closing < self.settings.rest_speed) & (touching | contacts["face"] | ~contacts["wall"])
+        contacts = self.deposit_touching({key: value[slow] for key, value in contacts.items()}, t)
         if len(contacts["i"]):
-            self.stats["resting_contacts"] += len(contacts["i"])
-            self.solve_inelastic(contacts, bias_time=self.dt)
+            self.solve_inelastic(contacts, horizon)
+        return len(contacts["i"])
+
+    def deposit_touching(self, c, t) -> dict:
+        """Deposit the free particles of contacts ``c`` that touch a deposition wall or a deposited
+        particle; the contacts, the deposited ones now of infinite mass."""
+        if not c or len(c["i"]) == 0:
+            return c
+        i, j, k = c["i"], c["j"], c["k"]
+        deposited = np.append(self.state.deposited, False)
+        sticky = np.where(c["wall"], self.walls.deposition[k] if self.has_walls else False, deposited[j])
+        sticky &= c["gap"] <= CONTACT_TOL * self.radius[i]
+        for idx in np.unique(i[sticky & self.free[i]]):
+            self.deposit(int(idx), t, reschedule=t > 0)
+        return c
 
     def relative_velocity(self, c) -> np.ndarray:
-        """(m, 3) contact-point velocity of body i relative to body j (row n: the wall)."""
-        v = np.vstack([self.v, np.zeros((1, 3))])
-        w = np.vstack([self.state.omega, np.zeros((1, 3))])
-        i, j = c["i"], c["j"]
-        return v[i] + cross(w[i], c["arm_i"]) - v[j] - cross(w[j], c["arm_j"]) - c["u_wall"]
+        """(m, 3) contact-point velocity of body i relative to body j (or the wall)."""
+        i, j, n = c["i"], c["j"], len(self.state)
+        omega = self.state.omega
+        u = self.v[i] + cross(omega[i], c["arm_i"]) - c["u_wall"]
+        pj = j < n
+        u[pj] -= self.v[j[pj]] + cross(omega[j[pj]], c["arm_j"][pj])
+        return u
 
-    def solve_inelastic(self, c, bias_time):
-        """Solve contacts ``c`` together: inelastic (e = 0), sticking unless the impulse leaves the
-        Coulomb cone (then sliding with μ λ_n), separating ones dropped. Contacts that share no
-        free particle with another are solved in closed form; the others by an active-set
-        iteration on W Λ = target − u, W = J M⁻¹ Jᵀ (a sparse direct solve). Then rolling
-        friction at the wall contacts that stick. With ``bias_time``, overlapping contacts
-        separate at 0.2 overlap / bias_time, so round-off never accumulates into sinking."""
+    def solve_inelastic(self, c, horizon):
+        """Solve contacts ``c`` together: inelastic (e = 0), never pulling. Touching contacts
+        have Coulomb friction (sticking within the cone, else sliding at μ λ_n); a contact with a
+        gap may close it within ``horizon`` (s), not more, and an overlapping one opens at
+        0.2 overlap / dt (so round-off never accumulates into sinking). Contacts that share
+        no free particle are solved in closed form; the others by a direct solve of the touching
+        ones (sticking first, then letting go or sliding where the impulse demands it) and a last
+        solve of all normal impulses so that none approaches at the end. Then rolling friction at
+        the wall contacts that stick."""
         c = unique_wall_contacts(c)
-        m, n = len(c["i"]), len(self.state)
+        m = len(c["i"])
         if m == 0:
             return
-        i, j, normal, mu = c["i"], c["j"], c["normal"], c["mu"]
-        target = np.zeros(m) if bias_time is None else 0.2 * np.maximum(-c["gap"], 0.0) / bias_time
-        u = self.relative_velocity(c)
-        inv_m = np.append(self.inv_mass, 0.0)
-        inv_i = np.append(self.inv_inertia, 0.0)
-        free = inv_m > 0
-        uses = np.bincount(i[free[i]], minlength=n + 1) + np.bincount(j[free[j]], minlength=n + 1)
-        alone = (uses[i] <= 1) & (uses[j] <= 1)
-        impulse, sticking = np.zeros((m, 3)), np.zeros(m, bool)
-        if alone.any():
-            w_n = inv_m[i[alone]] + inv_m[j[alone]]
-            k_t = (w_n + inv_i[i[alone]] * (c["arm_i"][alone] ** 2).sum(1)
-                   + inv_i[j[alone]] * (c["arm_j"][alone] ** 2).sum(1))
-            impulse[alone], sticking[alone] = isolated_impulses(u[alone], normal[alone], w_n, k_t, target[alone],
-                                                                mu[alone])
-        group = np.flatnonzero(~alone)
-        if len(group):
-            sub = {key: value[group] for key, value in c.items()}
-            impulse[group], sticking[group] = self.coupled_impulses(sub, u[group], target[group])
-        self.v += bincount3(i, impulse * inv_m[i, None], n + 1)[:n] - bincount3(j, impulse * inv_m[j, None], n + 1)[:n]
-        self.state.omega += (bincount3(i, cross(c["arm_i"], impulse) * inv_i[i, None], n + 1)[:n]
-                             - bincount3(j, cross(c["arm_j"], impulse) * inv_i[j, None], n + 1)[:n])
-        lam_n = (impulse * normal).sum(1)
-        rolling = c["wall"] & (c["mu_r"] > 0) & (lam_n > 0) & sticking
-        for idx in np.flatnonzero(rolling):  # the wall contacts of rolling particles
-            self.roll_resistance(i[idx], normal[idx], c["u_wall"][idx], lam_n[idx], c["mu_r"][idx])
-        touched = np.concatenate([i, j[j < n]])
-        self.speed = max(self.speed, float(np.sqrt((self.v[touched] ** 2).sum(1).max())))
+        gap = c["gap"]
+        target = np.where(gap > 0, -gap / max(horizon, 1e-300), -0.2 * gap / self.dt)
+        touching = gap <= CONTACT_TOL * self.radius[c["i"]]
+        cs = ContactSet(c, self.v, self.state.omega, self.inv_mass, self.inv_inertia)
+        cs.mu = np.where(touching, cs.mu, 0.0)  # no friction across a gap
+        free = cs.inv_m > 0
+        nb = len(cs.bodies)
+        uses = np.bincount(cs.i[free[cs.i]], minlength=nb) + np.bincount(cs.j[free[cs.j]], minlength=nb)
+        alone = (uses[cs.i] <= 1) & (uses[cs.j] <= 1)
+        sticking = np.zeros(m, bool)
+        rows = np.flatnonzero(alone)
+        if len(rows):
+            sticking[rows] = cs.closed_form(rows, target[rows]) & touching[rows]
+        rows = np.flatnonzero(~alone)
+        if len(rows):
+            start = cs.v.copy(), cs.w.copy(), cs.lam_n.copy(), cs.lam_t.copy()
+            at_stake = np.abs(cs.velocity(rows)).max() + np.abs(target).max() + self.settings.rest_speed
+            stick_rows = rows[touching[rows]]
+            if len(stick_rows):  # a static assembly in one direct solve
+                cs.sticking_solve(stick_rows, target[stick_rows])
+            tol = 1e-4 * self.settings.rest_speed if self.settings.rest_speed > 0 else 1e-12 * at_stake
+            sticking[rows] = cs.gauss_seidel(rows, target[rows], GS_SWEEPS, tol) & touching[rows]
+            solved = cs.normal_lcp(rows, target[rows])  # none approaches at the end
+            # an ill-posed set (nearly dependent contacts) shows as a jump far beyond the speeds
+            # at stake: fall back on sweeps, slower but never amplifying
+            jump = np.abs(cs.v - start[0]).max()
+            if not solved or not np.isfinite(jump) or jump > 10 * at_stake:
+                cs.v, cs.w, cs.lam_n, cs.lam_t = (value.copy() for value in start)
+                sticking[rows] = cs.jacobi(rows, target[rows], sweeps=500) & touching[rows]
+                self.stats["fallbacks"] += 1
+        bodies = cs.bodies[cs.real]
+        self.v[bodies], self.state.omega[bodies] = cs.v[cs.real], cs.w[cs.real]
+        rolling = np.flatnonzero(c["wall"] & (c["mu_r"] > 0) & (cs.lam_n > 0) & sticking)
+        if len(rolling):
+            self.roll_resistance(c["i"][rolling], c["normal"][rolling], c["u_wall"][rolling], cs.lam_n[rolling],
+                                 c["mu_r"][rolling])
+        if len(bodies):
+            self.speed = max(self.speed, float(np.sqrt((self.v[bodies] ** 2).sum(1).max())))
 
-    def coupled_impulses(self, c, u, target):
-        """(m, 3) impulses and (m,) sticking flags of contacts that share particles."""
-        m, n = len(c["i"]), len(self.state)
-        normal, mu = c["normal"], c["mu"]
-        jac = contact_jacobian(c, self.inv_mass > 0, n)
-        inv_m6 = np.repeat(np.column_stack([self.inv_mass, self.inv_inertia]), 3, axis=1).ravel()
-        W = (jac @ sparse.diags(inv_m6) @ jac.T).tocsr()
-        status = np.zeros(m, np.int8)  # 0 sticking, 1 sliding, 2 separating
-        direction = np.zeros((m, 3))   # friction direction of the sliding ones
-        impulse = np.zeros((m, 3))
-        for _ in range(20):
-            impulse = solve_active_set(W, u, normal, target, mu, status, direction)
-            lam_n = (impulse * normal).sum(1)
-            tang = impulse - lam_n[:, None] * normal
-            size = np.sqrt((tang * tang).sum(1))
-            after = u + (W @ impulse.ravel()).reshape(m, 3)
-            approaching = (after * normal).sum(1) < target - 1e-9 * (np.abs(u).max() + target.max())
-            new = status.copy()
-            new[(status < 2) & (lam_n < 0)] = 2
-            slide = (status == 0) & (lam_n >= 0) & (size > mu * lam_n * (1 + 1e-9))
-            new[slide] = 1
-            direction[slide] = tang[slide] / size[slide, None]
-            new[(status == 2) & approaching] = 0
-            if np.array_equal(new, status):
-                break
-            status = new
-        return impulse, status == 0
 
     # -- impacts, in time order -------------------------------------------------------------------
     def push(self, times, kind, i, others, start):
@@ -657,14 +695,14 @@ class EventLoop:
             dx, dv = self.state.x[i] - self.state.x[j], self.v[i] - self.v[j]
             contact = self.radius[i] + self.radius[j]
             near = np.sqrt((dx * dx).sum(1)) <= contact + np.sqrt((dv * dv).sum(1)) * self.dt
-            times = pair_contact_times(dx[near], dv[near], contact[near], self.dt, self.quiet)
+            times = pair_contact_times(dx[near], dv[near], contact[near], self.end, self.quiet)
             self.push(times, 0, i[near], j[near], 0.0)
         if self.has_walls:
             self.push_wall_events(np.flatnonzero(self.free), 0.0)
 
     def schedule(self, i, t):
         """Recompute particle i's contacts from time t (its velocity just changed at t)."""
-        horizon = self.dt - t
+        horizon = self.end - t  # contacts at the very end of the step are the next step's
         if horizon <= 0:
             return
         if self.tree is not None:
@@ -680,13 +718,13 @@ class EventLoop:
             self.push_wall_events(np.array([i]), t)
 
     def wall_candidates(self, particles, travel):
-        """(particle, triangle) index pairs that may touch after moving ``travel`` (per particle):
+        """(particle, triangle) index pairs that may touch after moving ``travel`` (m, per particle):
         bounding spheres that meet, and a plane within reach on the domain side."""
         none = np.zeros(0, np.int64)
         if len(particles) == 0:
             return none, none
         x = self.state.x[particles]
-        reach = self.radius[particles] + np.broadcast_to(travel, len(self.radius))[particles]
+        reach = self.radius[particles] + travel
         found = self.wall_tree.query_ball_point(x, reach + self.wall_reach.max())
         sizes = np.fromiter((len(f) for f in found), np.int64, len(found))
         if sizes.sum() == 0:
@@ -702,9 +740,9 @@ class EventLoop:
 
     def push_wall_events(self, particles, t):
         """Queue the wall contacts of ``particles`` (all at their clock = t) from time t."""
-        horizon = self.dt - t
-        speed = np.sqrt((self.v * self.v).sum(1))
-        i, k = self.wall_candidates(particles, speed * horizon)
+        horizon = self.end - t  # contacts at the very end of the step are the next step's
+        v = self.v[particles]
+        i, k = self.wall_candidates(particles, np.sqrt((v * v).sum(1)) * horizon)
         if len(i) == 0:
             return
         a, b, c, n, ctr = self.walls.geometry_at(k, t)
@@ -749,7 +787,9 @@ class EventLoop:
         if state.deposited[i] and self.free[j]:
             return self.deposit(j, t)
         s = self.settings
-        e = s.restitution if closing >= s.rest_speed else 0.0
+        if closing < s.rest_speed:
+            return self.settle_locally(t, [i, j])
+        e = s.restitution
         inv_mass = self.inv_mass[i] + self.inv_mass[j]
         k_t = inv_mass + self.inv_inertia[i] * self.radius[i] ** 2 + self.inv_inertia[j] * self.radius[j] ** 2
         J, _ = contact_impulse(u, n, inv_mass, k_t, e, s.friction)
@@ -785,108 +825,296 @@ class EventLoop:
         self.stats["wall_collisions"] += 1
         if walls.deposition[k]:
             return self.deposit(i, t)
-        resting = closing < self.settings.rest_speed
-        e = 0.0 if resting else walls.restitution[k]
+        if closing < self.settings.rest_speed:
+            return self.settle_locally(t, [i])
         inv_mass = self.inv_mass[i]
-        J, sticking = contact_impulse(u, n, inv_mass, 3.5 * inv_mass, e, walls.friction[k])
+        J, _ = contact_impulse(u, n, inv_mass, 3.5 * inv_mass, walls.restitution[k], walls.friction[k])
         self.v[i] += inv_mass * J
         state.omega[i] += self.inv_inertia[i] * cross(arm, J)
-        if resting and sticking and walls.rolling_friction[k] > 0:
-            self.roll_resistance(i, n, u_wall, float(J @ n), walls.rolling_friction[k])
         self.changed(i, t)
 
     def roll_resistance(self, i, n, u_wall, j_n, mu_r):
-        """Slow a rolling particle by (5/7) μ_r J_n / m, keeping it rolling (no reversal)."""
+        """Rolling friction at resting wall contacts (arrays, one row per contact): the torque
+        μ_r N r against rolling, with the rolling constraint kept, slows the rolling velocity
+        relative to the wall by (5/7) μ_r J_n / m and the spin with it (Δω = n × Δv / r),
+        never past a stop."""
         rolling = self.v[i] - u_wall
-        rolling = rolling - (rolling @ n) * n
-        speed = float(np.sqrt(rolling @ rolling))
-        if speed == 0.0:
-            return
-        dv = -min(5.0 / 7.0 * mu_r * j_n * self.inv_mass[i], speed) * rolling / speed
-        self.v[i] += dv
-        self.state.omega[i] += cross(n, dv) / self.radius[i]
-
-
-def isolated_impulses(u, normal, w_n, k_t, target, mu) -> tuple[np.ndarray, np.ndarray]:
-    """Closed-form inelastic impulses (m, 3) of independent contacts: normal velocity brought to
-    ``target`` (never pulling), tangential velocity stopped within the Coulomb cone; and the
-    (m,) sticking flags."""
-    u_n = (u * normal).sum(1)
-    lam_n = np.maximum((target - u_n) / w_n, 0.0)
-    stick = -(u - u_n[:, None] * normal) / k_t[:, None]
-    size = np.sqrt((stick * stick).sum(1))
-    limit = mu * lam_n
-    sticking = size <= limit
-    scale = np.where(sticking, 1.0, limit / np.maximum(size, 1e-300))
-    return lam_n[:, None] * normal + stick * scale[:, None], sticking
+        rolling -= (rolling * n).sum(1)[:, None] * n
+        speed = np.sqrt((rolling * rolling).sum(1))
+        slow = np.minimum(5.0 / 7.0 * mu_r * j_n * self.inv_mass[i], speed)
+        dv = -rolling * (slow / np.maximum(speed, 1e-300))[:, None]
+        n_all = len(self.state)
+        self.v += bincount3(i, dv, n_all)
+        self.state.omega += bincount3(i, cross(n, dv) / self.radius[i, None], n_all)
 
 
 def unique_wall_contacts(c) -> dict:
-    """Drop repeated wall contacts of one particle with the same normal (a sphere over the shared
-    edge of two coplanar triangles touches both at one point)."""
-    if not c or not c["wall"].any():
+    """Keep one of the wall contacts of a particle whose normals are (nearly) parallel, the
+    closest: a sphere over the shared edge of two coplanar triangles touches both at one point,
+    and near it the edge of the other triangle lies within the contact tolerance at a slightly
+    tilted normal. Nearly parallel constraints would make the contact solve ill-posed."""
+    if not c or c["wall"].sum() < 2:
         return c
-    key = np.column_stack([c["i"], np.round(c["normal"] * 1e6), ~c["wall"] * np.arange(len(c["i"]))])
-    _, first = np.unique(key, axis=0, return_index=True)
-    keep = np.sort(first)
+    walls = np.flatnonzero(c["wall"])
+    walls = walls[np.lexsort((c["gap"][walls], ~c["face"][walls], c["i"][walls]))]  # per particle: faces, closest first
+    owner, normal = c["i"][walls], c["normal"][walls]
+    drop = np.zeros(len(walls), bool)
+    for shift in range(1, len(walls)):  # compare with the contacts ranked before, same particle
+        same = owner[shift:] == owner[:-shift]
+        if not same.any():
+            break
+        parallel = same & ((normal[shift:] * normal[:-shift]).sum(1) > PARALLEL)
+        drop[shift:] |= parallel
+    if not drop.any():
+        return c
+    keep = np.ones(len(c["i"]), bool)
+    keep[walls[drop]] = False
     return {name: value[keep] for name, value in c.items()}
 
 
-def contact_jacobian(c, free, n) -> sparse.csr_matrix:
-    """(3m, 6n) sparse map from body velocities (v, ω per body) to relative contact velocities:
-    u_c = Σ_b s_cb (v_b − [a_cb]× ω_b), s = +1 for body i, −1 for body j; fixed bodies left out."""
-    m = len(c["i"])
-    rows, cols, vals = [], [], []
-    for body, arm, sign in ((c["i"], c["arm_i"], 1.0), (c["j"], c["arm_j"], -1.0)):
-        use = np.flatnonzero(body < n)
-        use = use[free[body[use]]]
-        if len(use) == 0:
-            continue
-        b, a = body[use], arm[use]
-        zero = np.zeros(len(use))
-        # block [I | -[a]x], row-major 3 x 6
-        block = np.stack([
-            np.stack([np.ones_like(zero), zero, zero, zero, a[:, 2], -a[:, 1]], 1),
-            np.stack([zero, np.ones_like(zero), zero, -a[:, 2], zero, a[:, 0]], 1),
-            np.stack([zero, zero, np.ones_like(zero), a[:, 1], -a[:, 0], zero], 1)], 1) * sign
-        r = 3 * use[:, None, None] + np.arange(3)[None, :, None]
-        q = 6 * b[:, None, None] + np.arange(6)[None, None, :]
-        rows.append(np.broadcast_to(r, block.shape).ravel())
-        cols.append(np.broadcast_to(q, block.shape).ravel())
-        vals.append(block.ravel())
-    if not rows:
-        return sparse.csr_matrix((3 * m, 6 * n))
-    return sparse.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
-                             shape=(3 * m, 6 * n))
+class ContactSet:
+    """Contacts among a few bodies, solved inelastically (e = 0) with Coulomb friction.
 
+    Works on local copies of the bodies' velocities (``bodies``: particle indices, n = a wall: a
+    body of infinite mass at rest whose surface motion enters through ``u_wall``).
+    """
 
-def solve_active_set(W, u, normal, target, mu, status, direction) -> np.ndarray:
-    """(m, 3) contact impulses for one guess of the contact states: sticking contacts (0) end with
-    relative velocity target·n, sliding ones (1) with normal velocity target and impulse
-    λ_n (n + μ f), separating ones (2) carry none."""
-    m = len(status)
-    stick, slide = np.flatnonzero(status == 0), np.flatnonzero(status == 1)
-    n_unknowns = 3 * len(stick) + len(slide)
-    if n_unknowns == 0:
-        return np.zeros((m, 3))
-    # P: unknowns → impulses (3m); E: equations picked from the 3m velocity rows
-    cols_stick = np.arange(3 * len(stick))
-    rows_stick = (3 * stick[:, None] + np.arange(3)).ravel()
-    d = normal[slide] + mu[slide, None] * direction[slide]
-    col_slide = 3 * len(stick) + np.arange(len(slide))
-    P = sparse.csr_matrix((np.concatenate([np.ones(len(rows_stick)), d.ravel()]),
-                           (np.concatenate([rows_stick, (3 * slide[:, None] + np.arange(3)).ravel()]),
-                            np.concatenate([cols_stick, np.repeat(col_slide, 3)]))), shape=(3 * m, n_unknowns))
-    E = sparse.csr_matrix((np.concatenate([np.ones(len(rows_stick)), normal[slide].ravel()]),
-                           (np.concatenate([cols_stick, np.repeat(col_slide, 3)]),
-                            np.concatenate([rows_stick, (3 * slide[:, None] + np.arange(3)).ravel()]))),
-                          shape=(n_unknowns, 3 * m))
-    A = (E @ W @ P).tocsc()
-    rhs = E @ (target[:, None] * normal - u).ravel()
-    scale = np.abs(A.diagonal()).max()
-    A = A + sparse.identity(n_unknowns, format="csc") * (1e-10 * scale)  # redundant contacts share
-    z = spsolve(A, rhs) if n_unknowns > 1 else rhs / A.toarray()[0]
-    return (P @ np.atleast_1d(z)).reshape(m, 3)
+    def __init__(self, c, v, omega, inv_mass, inv_inertia):
+        n, m = len(v), len(c["i"])
+        self.bodies, inverse = np.unique(np.concatenate([c["i"], c["j"]]), return_inverse=True)
+        self.i, self.j = inverse[:m], inverse[m:]
+        self.real = self.bodies < n
+        nb, rows = len(self.bodies), self.bodies[self.real]
+        self.v, self.w, self.inv_m, self.inv_i = np.zeros((nb, 3)), np.zeros((nb, 3)), np.zeros(nb), np.zeros(nb)
+        self.v[self.real], self.w[self.real] = v[rows], omega[rows]
+        self.inv_m[self.real], self.inv_i[self.real] = inv_mass[rows], inv_inertia[rows]
+        self.normal, self.arm_i, self.arm_j = c["normal"], c["arm_i"], c["arm_j"]
+        self.u_wall, self.mu = c["u_wall"], c["mu"]
+        self.lam_n, self.lam_t = np.zeros(m), np.zeros((m, 3))
+
+    def velocity(self, rows) -> np.ndarray:
+        """(k, 3) contact-point velocity of body i relative to body j (or the wall)."""
+        i, j = self.i[rows], self.j[rows]
+        return (self.v[i] + cross(self.w[i], self.arm_i[rows]) - self.v[j] - cross(self.w[j], self.arm_j[rows])
+                - self.u_wall[rows])
+
+    def apply(self, rows, J) -> None:
+        """Impulses J (k, 3) on bodies i, −J on bodies j of contacts ``rows``."""
+        nb, i, j = len(self.bodies), self.i[rows], self.j[rows]
+        self.v += bincount3(i, J * self.inv_m[i, None], nb) - bincount3(j, J * self.inv_m[j, None], nb)
+        self.w += (bincount3(i, cross(self.arm_i[rows], J) * self.inv_i[i, None], nb)
+                   - bincount3(j, cross(self.arm_j[rows], J) * self.inv_i[j, None], nb))
+        j_n = (J * self.normal[rows]).sum(1)
+        self.lam_n[rows] += j_n
+        self.lam_t[rows] += J - j_n[:, None] * self.normal[rows]
+
+    def closed_form(self, rows, target) -> np.ndarray:
+        """Contacts that share no free body: exact impulses; returns the sticking flags."""
+        i, j, normal = self.i[rows], self.j[rows], self.normal[rows]
+        w_n = self.inv_m[i] + self.inv_m[j]
+        k_t = (w_n + self.inv_i[i] * (self.arm_i[rows] ** 2).sum(1) + self.inv_i[j] * (self.arm_j[rows] ** 2).sum(1))
+        u = self.velocity(rows)
+        u_n = (u * normal).sum(1)
+        lam_n = np.maximum((target - u_n) / w_n, 0.0)
+        stick = -(u - u_n[:, None] * normal) / k_t[:, None]
+        size = np.sqrt((stick * stick).sum(1))
+        sticking = size <= self.mu[rows] * lam_n
+        scale = np.where(sticking, 1.0, self.mu[rows] * lam_n / np.maximum(size, 1e-300))
+        self.apply(rows, lam_n[:, None] * normal + stick * scale[:, None])
+        return sticking
+
+    def jacobi(self, rows, target, sweeps) -> np.ndarray:
+        """Coupled contacts, robustly: Jacobi sweeps, each body's mass shared among its contacts
+        (mass splitting), on accumulated impulses clamped to λ_n >= 0 and the Coulomb cone.
+        Returns the sticking flags."""
+        i, j, normal, mu = self.i[rows], self.j[rows], self.normal[rows], self.mu[rows]
+        nb = len(self.bodies)
+        free = self.inv_m > 0
+        uses = np.bincount(i[free[i]], minlength=nb) + np.bincount(j[free[j]], minlength=nb)
+        w_n = uses[i] * self.inv_m[i] + uses[j] * self.inv_m[j]
+        k_t = (w_n + uses[i] * self.inv_i[i] * (self.arm_i[rows] ** 2).sum(1)
+               + uses[j] * self.inv_i[j] * (self.arm_j[rows] ** 2).sum(1))
+        lam_n, lam_t = np.zeros(len(i)), np.zeros((len(i), 3))
+        for _ in range(sweeps):
+            u = self.velocity(rows)
+            u_n = (u * normal).sum(1)
+            new_n = np.maximum(lam_n + (target - u_n) / w_n, 0.0)
+            trial = lam_t - (u - u_n[:, None] * normal) / k_t[:, None]
+            size = np.sqrt((trial * trial).sum(1))
+            new_t = trial * np.minimum(1.0, mu * new_n / np.maximum(size, 1e-300))[:, None]
+            J = (new_n - lam_n)[:, None] * normal + (new_t - lam_t)
+            lam_n, lam_t = new_n, new_t
+            self.apply(rows, J)
+            if np.abs(J).max() * (self.inv_m[i] + self.inv_m[j]).max() <= 1e-9 * (np.abs(u).max() + 1e-300):
+                break
+        return np.sqrt((lam_t * lam_t).sum(1)) < mu * lam_n * (1 - 1e-9)
+
+    def gauss_seidel(self, rows, target, sweeps, tol) -> np.ndarray:
+        """Coupled contacts with friction: projected Gauss–Seidel sweeps over the contacts (one at
+        a time: normal impulse clamped to >= 0, tangential to the Coulomb cone, both on the
+        impulses accumulated so far, so a prior normal solve is the warm start). Each update
+        only removes energy. Returns the sticking flags."""
+        i, j = self.i[rows].tolist(), self.j[rows].tolist()
+        normal, arm_i, arm_j = self.normal[rows].tolist(), self.arm_i[rows].tolist(), self.arm_j[rows].tolist()
+        u_wall, mu, goal = self.u_wall[rows].tolist(), self.mu[rows].tolist(), np.asarray(target, float).tolist()
+        inv_m, inv_i = self.inv_m.tolist(), self.inv_i.tolist()
+        V, W = self.v.tolist(), self.w.tolist()
+        lam_n, lam_t = self.lam_n[rows].tolist(), self.lam_t[rows].tolist()
+        k_n = [inv_m[a] + inv_m[b] for a, b in zip(i, j)]
+        k_t = [inv_m[a] + inv_i[a] * (p[0] ** 2 + p[1] ** 2 + p[2] ** 2)
+               + inv_m[b] + inv_i[b] * (q[0] ** 2 + q[1] ** 2 + q[2] ** 2)
+               for a, b, p, q in zip(i, j, arm_i, arm_j)]
+        for _ in range(sweeps):
+            largest = 0.0
+            for c in range(len(i)):
+                a, b, n, p, q = i[c], j[c], normal[c], arm_i[c], arm_j[c]
+                va, wa, vb, wb, uw = V[a], W[a], V[b], W[b], u_wall[c]
+                u = [va[0] + wa[1] * p[2] - wa[2] * p[1] - vb[0] - (wb[1] * q[2] - wb[2] * q[1]) - uw[0],
+                     va[1] + wa[2] * p[0] - wa[0] * p[2] - vb[1] - (wb[2] * q[0] - wb[0] * q[2]) - uw[1],
+                     va[2] + wa[0] * p[1] - wa[1] * p[0] - vb[2] - (wb[0] * q[1] - wb[1] * q[0]) - uw[2]]
+                u_n = u[0] * n[0] + u[1] * n[1] + u[2] * n[2]
+                new_n = max(lam_n[c] + (goal[c] - u_n) / k_n[c], 0.0)
+                d_n = new_n - lam_n[c]
+                lam_n[c] = new_n
+                old = lam_t[c]
+                trial = [old[d] - (u[d] - u_n * n[d]) / k_t[c] for d in range(3)]
+                size = (trial[0] ** 2 + trial[1] ** 2 + trial[2] ** 2) ** 0.5
+                limit = mu[c] * new_n
+                if size > limit:
+                    trial = [t * limit / size for t in trial]
+                lam_t[c] = trial
+                J = [d_n * n[d] + trial[d] - old[d] for d in range(3)]
+                ma, ia, mb, ib = inv_m[a], inv_i[a], inv_m[b], inv_i[b]
+                tq_a = [p[1] * J[2] - p[2] * J[1], p[2] * J[0] - p[0] * J[2], p[0] * J[1] - p[1] * J[0]]
+                tq_b = [q[1] * J[2] - q[2] * J[1], q[2] * J[0] - q[0] * J[2], q[0] * J[1] - q[1] * J[0]]
+                for d in range(3):
+                    va[d] += ma * J[d]
+                    wa[d] += ia * tq_a[d]
+                    vb[d] -= mb * J[d]
+                    wb[d] -= ib * tq_b[d]
+                largest = max(largest, (J[0] ** 2 + J[1] ** 2 + J[2] ** 2) ** 0.5 * (ma + mb))
+            if largest <= tol:
+                break
+        self.v[:], self.w[:] = V, W
+        self.lam_n[rows], self.lam_t[rows] = lam_n, lam_t
+        size = np.sqrt((self.lam_t[rows] ** 2).sum(1))
+        return size < self.mu[rows] * self.lam_n[rows] * (1 - 1e-9)
+
+    def jacobian(self, rows, normal_only=False):
+        """Sparse map from the bodies' (v, ω) to the contacts' relative velocities: per contact
+        and body ±[I | −[a]×] (3 rows), or only its normal row ±[n, a × n]."""
+        i, j, k, nb = self.i[rows], self.j[rows], len(rows), len(self.bodies)
+        entries = []
+        for body, arm, sign in ((i, self.arm_i[rows], 1.0), (j, self.arm_j[rows], -1.0)):
+            cols = 6 * body[:, None] + np.arange(6)
+            if normal_only:
+                n = self.normal[rows]
+                entries.append((np.repeat(np.arange(k), 6), cols.ravel(),
+                                (sign * np.column_stack([n, cross(arm, n)])).ravel()))
+                continue
+            one, zero = np.ones(k), np.zeros(k)
+            block = np.stack([np.stack([one, zero, zero, zero, arm[:, 2], -arm[:, 1]], 1),
+                              np.stack([zero, one, zero, -arm[:, 2], zero, arm[:, 0]], 1),
+                              np.stack([zero, zero, one, arm[:, 1], -arm[:, 0], zero], 1)], 1)
+            entries.append(((3 * np.arange(k)[:, None, None] + np.arange(3)[None, :, None]
+                             + np.zeros((1, 1, 6), np.int64)).ravel(),
+                            np.broadcast_to(cols[:, None, :], (k, 3, 6)).ravel(), (sign * block).ravel()))
+        r, q, d = (np.concatenate(parts) for parts in zip(*entries))
+        shape = ((1 if normal_only else 3) * k, 6 * nb)
+        inv6 = np.repeat(np.column_stack([self.inv_m, self.inv_i]), 3, axis=1).ravel()
+        if shape[0] <= DENSE_ROWS:
+            jac = np.zeros(shape)
+            jac[r, q] = d  # one body per column within a row: no repeated entries
+            W = (jac * inv6) @ jac.T
+            W[np.diag_indices(shape[0])] += 1e-10 * max(W.diagonal().max(), 1e-300)
+            return W
+        jac = sparse.csr_matrix((d, (r, q)), shape=shape)
+        W = (jac @ sparse.diags(inv6) @ jac.T).tocsc()
+        return W + sparse.identity(W.shape[0], format="csc") * (1e-10 * max(W.diagonal().max(), 1e-300))
+
+    def sticking_solve(self, rows, target) -> np.ndarray:
+        """Coupled contacts with friction, by a direct solve: first every contact sticks (its
+        relative velocity becomes target·n); contacts whose impulse would pull let go, those
+        outside the Coulomb cone slide (impulse λ_n (n + μ f), f fixed from the sticking guess),
+        and the rest is solved again, until no contact changes (each one changes at most twice;
+        letting go is settled before any cone is judged).
+        Returns the sticking flags."""
+        k = len(rows)
+        normal, mu = self.normal[rows], self.mu[rows]
+        W = self.jacobian(rows)
+        dense = isinstance(W, np.ndarray)
+        u = self.velocity(rows)
+        status = np.zeros(k, np.int8)  # 0 sticking, 1 sliding, 2 let go
+        direction = np.zeros((k, 3))
+        impulse = np.zeros((k, 3))
+        for _ in range(2 * k + 1):
+            stick, slide = np.flatnonzero(status == 0), np.flatnonzero(status == 1)
+            impulse = np.zeros((k, 3))
+            if len(stick) + len(slide):
+                # unknowns: 3 per sticking contact, λ_n per sliding one; P maps them to impulses
+                n_stick = 3 * len(stick)
+                rows_p = np.concatenate([(3 * stick[:, None] + np.arange(3)).ravel(),
+                                         (3 * slide[:, None] + np.arange(3)).ravel()])
+                cols_p = np.concatenate([np.arange(n_stick), np.repeat(n_stick + np.arange(len(slide)), 3)])
+                d = normal[slide] + mu[slide, None] * direction[slide]
+                p_vals = np.concatenate([np.ones(n_stick), d.ravel()])
+                e_vals = np.concatenate([np.ones(n_stick), normal[slide].ravel()])
+                size = (3 * k, n_stick + len(slide))
+                if dense:
+                    P, E = np.zeros(size), np.zeros(size[::-1])
+                    P[rows_p, cols_p], E[cols_p, rows_p] = p_vals, e_vals
+                    A = E @ W @ P
+                else:
+                    P = sparse.csr_matrix((p_vals, (rows_p, cols_p)), shape=size)
+                    E = sparse.csr_matrix((e_vals, (cols_p, rows_p)), shape=size[::-1])
+                    A = (E @ W @ P).tocsc()
+                rhs = E @ (target[:, None] * normal - u).ravel()
+                z = np.linalg.solve(A, rhs) if dense else np.atleast_1d(spsolve(A, rhs))
+                impulse = (P @ z).reshape(k, 3)
+            lam_n = (impulse * normal).sum(1)
+            tang = impulse - lam_n[:, None] * normal
+            size = np.sqrt((tang * tang).sum(1))
+            pulls = (status < 2) & (lam_n < 0)
+            if pulls.any():  # first let go where the contact would pull, then judge the cones
+                status[pulls] = 2
+                continue
+            slides = (status == 0) & (size > mu * lam_n * (1 + 1e-9))
+            if not slides.any():
+                break
+            status[slides] = 1
+            direction[slides] = tang[slides] / size[slides, None]
+        self.apply(rows, impulse)
+        return status == 0
+
+    def normal_lcp(self, rows, target) -> bool:
+        """Make every contact of ``rows`` stop approaching (normal velocity >= target) with
+        non-negative normal impulses: an active-set solve of W_nn λ = target − u_n, W_nn the
+        normal-normal block of J M⁻¹ Jᵀ. Returns False (and applies nothing) if the active set
+        does not settle."""
+        i, j, normal = self.i[rows], self.j[rows], self.normal[rows]
+        k = len(i)
+        W = self.jacobian(rows, normal_only=True)
+        dense = isinstance(W, np.ndarray)
+        u_n = (self.velocity(rows) * normal).sum(1)
+        tol = 1e-12 * (np.abs(u_n).max() + np.abs(target).max())
+        active = u_n < target - tol
+        lam, converged = np.zeros(k), False
+        for _ in range(4 * k + 4):
+            lam = np.zeros(k)
+            if active.any():
+                rhs = (target - u_n)[active]
+                lam[active] = (np.linalg.solve(W[np.ix_(active, active)], rhs) if dense
+                               else np.atleast_1d(spsolve(W[active][:, active].tocsc(), rhs)))
+            after = u_n + W @ lam
+            drop = active & (lam < 0)
+            add = ~active & (after < target - tol)
+            if not drop.any() and not add.any():
+                converged = True
+                break
+            active = (active & ~drop) | (add if not drop.any() else False)
+        if converged and lam.any():
+            self.apply(rows, lam[:, None] * normal)
+        return converged
 
 
 def bincount3(index, values, n) -> np.ndarray:
@@ -929,38 +1157,45 @@ def wall_distances(x, walls: Walls, reach) -> np.ndarray:
     centroid = (walls.a + walls.b + walls.c) / 3.0
     size = np.max([np.linalg.norm(v - centroid, axis=1) for v in (walls.a, walls.b, walls.c)], axis=0)
     found = cKDTree(centroid).query_ball_point(x, np.broadcast_to(reach, len(x)) + size.max())
-    sizes = np.fromiter((len(f) for f in found), np.int64, len(found))
+    p, k = flatten(found)
     out = np.full(len(x), np.inf)
-    if sizes.sum():
-        p = np.repeat(np.arange(len(x)), sizes)
-        k = np.concatenate([np.asarray(f, np.int64) for f in found])
+    if len(p):
         q, _ = closest_points_on_triangles(x[p], walls.a[k], walls.b[k], walls.c[k])
-        np.minimum.at(out, p, np.linalg.norm(x[p] - q, axis=1))
+        d = np.linalg.norm(x[p] - q, axis=1)
+        order = np.lexsort((d, p))  # nearest first within each point
+        first = np.ones(len(p), bool)
+        first[1:] = p[order][1:] != p[order][:-1]
+        out[p[order][first]] = d[order][first]
     return out
 
 
+def flatten(found) -> tuple[np.ndarray, np.ndarray]:
+    """A k-d tree's per-point lists of neighbours as (point, neighbour) index arrays."""
+    sizes = np.fromiter((len(f) for f in found), np.int64, len(found))
+    row = np.repeat(np.arange(len(found)), sizes)
+    return row, np.fromiter((t for f in found for t in f), np.int64, int(sizes.sum()))
+
+
 def overlaps_existing(state: ParticleState, new) -> np.ndarray:
-    """(len(new),) bool: new particles that overlap a particle of ``state`` or an earlier new one."""
+    """(len(new),) bool: new particles that overlap a particle of ``state`` or an earlier new one
+    that is kept."""
     m = len(new)
     bad = np.zeros(m, bool)
     if m == 0:
         return bad
     if len(state):
-        r_max = float(state.radius.max()) + float(new.radius.max())
-        found = cKDTree(state.x).query_ball_point(new.x, r_max)
-        for i, nb in enumerate(found):  # loops over the few new particles of one release
-            nb = np.asarray(nb, np.int64)
-            if len(nb):
-                d = np.linalg.norm(state.x[nb] - new.x[i], axis=1)
-                bad[i] = np.any(d < (state.radius[nb] + new.radius[i]) * (1 - 1e-9))
+        found = cKDTree(state.x).query_ball_point(new.x, float(state.radius.max()) + new.radius)
+        i, k = flatten(found)
+        close = np.linalg.norm(state.x[k] - new.x[i], axis=1) < (state.radius[k] + new.radius[i]) * (1 - 1e-9)
+        bad[i[close]] = True
     if m > 1:
         pairs = cKDTree(new.x).query_pairs(2 * float(new.radius.max()), output_type="ndarray")
-        pairs = pairs[np.lexsort((pairs[:, 1], pairs[:, 0]))] if len(pairs) else pairs
-        for i, j in pairs:  # later one loses, unless the earlier was already dropped
-            i, j = min(i, j), max(i, j)
-            if not bad[i] and not bad[j]:
-                if np.linalg.norm(new.x[i] - new.x[j]) < (new.radius[i] + new.radius[j]) * (1 - 1e-9):
-                    bad[j] = True
+        pairs = np.sort(pairs, axis=1)
+        d = np.linalg.norm(new.x[pairs[:, 0]] - new.x[pairs[:, 1]], axis=1)
+        pairs = pairs[d < (new.radius[pairs[:, 0]] + new.radius[pairs[:, 1]]) * (1 - 1e-9)]
+        for i, j in pairs[np.lexsort((pairs[:, 1], pairs[:, 0]))]:  # the few overlapping pairs, in order
+            if not bad[i]:
+                bad[j] = True
     return bad
 
 
