@@ -1,7 +1,7 @@
 """Time to build a distributed box mesh (DMPlex create + distribute + numpy arrays), and its memory.
 
-    ./run_mpi.sh -n 2 --python bench/mesh_build.py [N [hex|tet]]     # default N = 100 (1e6 hex cells)
-    mpirun -n 2 .venv/bin/python bench/mesh_build.py 100
+    mpirun --allow-run-as-root -n 2 .venv/bin/python bench/mesh_build.py [N [hex|tet]]
+        # default N = 100 (1e6 hexahedra); run ./run_tests.sh or ./run_mpi.sh once first to bootstrap .venv
 """
 import resource
 import sys
