@@ -60,7 +60,7 @@ def instrument(solver, clock):
                 clock.setdefault(key + " start", start)
         return solve
     solver.pressure.solve = timed(solver.pressure.solve, "pressure KSP")
-    for ksp in solver.momentum:
+    for ksp in {id(k): k for k in solver.momentum}.values():   # the components may share one KSP
         ksp.solve = timed(ksp.solve, "momentum KSP")
 
 

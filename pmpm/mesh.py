@@ -140,7 +140,6 @@ class Mesh:
         migration = dm.distribute(overlap=1) if comm.size > 1 else None
         self.build_stages["distribute"] = wallclock.perf_counter() - mark
         mark = wallclock.perf_counter()
-        self.dm = dm
         cell_start, cell_end = dm.getHeightStratum(0)
         vertex_start, vertex_end = dm.getDepthStratum(0)
         n_local = cell_end - cell_start
@@ -190,6 +189,8 @@ class Mesh:
             cell_vertices = np.array([dm.getTransitiveClosure(c)[0][-k:] for c in range(cell_start, cell_end)],
                                      dtype=np.int64).reshape(n_local, k) - vertex_start
         self.cell_vertices = cell_vertices
+        # the rest is built from these arrays: the DMPlex goes now, before the faces' temporaries
+        dm.destroy()
         self.build_stages["cells"] = wallclock.perf_counter() - mark
         mark = wallclock.perf_counter()
         self._build_faces_and_geometry()
@@ -216,19 +217,25 @@ class Mesh:
         n_local, n_per_cell = len(cv), len(pattern)
         fv = cv[:, pattern].reshape(n_local * n_per_cell, -1)        # every cell's faces
         face_cell = np.repeat(np.arange(n_local), n_per_cell)
-        points = xyz[fv]
-        area_vec = polygon_area_vector(points)
-        center = points.mean(axis=1)
-        cell_mean = xyz[cv].mean(axis=1)
+        # corner by corner, never a (faces, corners, 3) array: this is the peak of the mesh's memory
+        corners = fv.shape[1]
+        if corners == 3:
+            area_vec = 0.5 * np.cross(xyz[fv[:, 1]] - xyz[fv[:, 0]], xyz[fv[:, 2]] - xyz[fv[:, 0]])
+        else:
+            area_vec = 0.5 * np.cross(xyz[fv[:, 2]] - xyz[fv[:, 0]], xyz[fv[:, 3]] - xyz[fv[:, 1]])
+        center = mean_of_gathers(xyz, fv)
+        cell_mean = mean_of_gathers(xyz, cv)
+        arm = center - cell_mean[face_cell]                             # apex → face centre
         # orient each cell's faces outward
-        outward = np.einsum("ij,ij->i", area_vec, center - cell_mean[face_cell]) >= 0
+        outward = np.einsum("ij,ij->i", area_vec, arm) >= 0
         area_vec[~outward] *= -1
         fv[~outward] = fv[~outward][:, ::-1]
         # volume and centroid from pyramids on the faces, apex at the vertex mean
-        pyramid = np.einsum("ij,ij->i", center - cell_mean[face_cell], area_vec) / 3.0
+        pyramid = np.einsum("ij,ij->i", arm, area_vec) / 3.0
         volume = np.bincount(face_cell, pyramid, minlength=n_local)
-        moment = pyramid[:, None] * 0.75 * (center - cell_mean[face_cell])
-        offset = np.stack([np.bincount(face_cell, moment[:, d], minlength=n_local) for d in range(3)], axis=1)
+        offset = np.stack([np.bincount(face_cell, 0.75 * pyramid * arm[:, d], minlength=n_local) for d in range(3)],
+                          axis=1)
+        del arm
         error = None
         if (volume <= 0).any():
             bad = int(np.argmax(volume <= 0))
@@ -323,7 +330,7 @@ class Mesh:
         cells = cells[..., 0]
         vertices = self.vertex_xyz[self.cell_vertices[cells]]               # (..., k, 3)
         faces = vertices[..., CELL_FACES[self.cell_type], :]                # (..., nf, kf, 3)
-        area = polygon_area_vector(faces)
+        area = polygon_area_vector(*np.moveaxis(faces, -2, 0))
         center = faces.mean(axis=-2)
         mean = vertices.mean(axis=-2)[..., None, :]
         area *= np.sign(np.einsum("...i,...i->...", area, center - mean))[..., None]
@@ -373,30 +380,57 @@ class Mesh:
 
 
 # -- building blocks ------------------------------------------------------------------------------
-def polygon_area_vector(points: np.ndarray) -> np.ndarray:
-    """Area × unit normal of triangles or quads (..., 3|4, 3), right-handed in the vertex order."""
-    if points.shape[-2] == 3:
-        return 0.5 * np.cross(points[..., 1, :] - points[..., 0, :], points[..., 2, :] - points[..., 0, :])
-    return 0.5 * np.cross(points[..., 2, :] - points[..., 0, :], points[..., 3, :] - points[..., 1, :])
+def polygon_area_vector(*corners: np.ndarray) -> np.ndarray:
+    """Area × unit normal of triangles or quads given their 3 or 4 corners (each (..., 3)),
+    right-handed in the corner order."""
+    if len(corners) == 3:
+        return 0.5 * np.cross(corners[1] - corners[0], corners[2] - corners[0])
+    return 0.5 * np.cross(corners[2] - corners[0], corners[3] - corners[1])
+
+
+def mean_of_gathers(xyz: np.ndarray, index: np.ndarray) -> np.ndarray:
+    """xyz[index].mean(axis=1) for index (m, k), without the (m, k, 3) temporary."""
+    total = xyz[index[:, 0]]
+    for k in range(1, index.shape[1]):
+        total += xyz[index[:, k]]
+    return total / index.shape[1]
+
+
+def _packed_key(rows: np.ndarray):
+    """One int64 per row of a non-negative int array, equal exactly where the rows are; None when
+    the row does not fit in 63 bits."""
+    width = rows.shape[1]
+    bits = max(int(rows.max(initial=0)).bit_length(), 1)
+    if bits * width > 63:
+        return None
+    key = np.zeros(len(rows), np.int64)
+    for column in range(width):
+        key <<= bits
+        key |= rows[:, column]
+    return key
 
 
 def _row_order(rows: np.ndarray) -> np.ndarray:
     """Sorting permutation of the rows of a non-negative int array (one packed key when it fits)."""
-    width = rows.shape[1]
-    bits = max(int(rows.max(initial=0)).bit_length(), 1)
-    if bits * width <= 63:
-        key = np.zeros(len(rows), np.int64)
-        for column in range(width):
-            key = (key << bits) | rows[:, column]
+    key = _packed_key(rows)
+    if key is not None:
         return np.argsort(key, kind="stable")
     return np.lexsort(rows.T[::-1])
 
 
 def pair_equal_rows(rows: np.ndarray):
     """Rows that occur twice and once. Returns (first, second, single) row indices."""
-    order = _row_order(rows)
-    ordered = rows[order]
-    same = (ordered[1:] == ordered[:-1]).all(axis=1)
+    key = _packed_key(rows)
+    if key is not None:  # compare the sorted keys, not a sorted copy of the rows (memory)
+        order = np.argsort(key, kind="stable")
+        ordered = key[order]
+        del key
+        same = ordered[1:] == ordered[:-1]
+    else:
+        order = _row_order(rows)
+        ordered = rows[order]
+        same = (ordered[1:] == ordered[:-1]).all(axis=1)
+    del ordered
     first = np.flatnonzero(same)
     paired = np.zeros(len(rows), bool)
     paired[first] = paired[first + 1] = True

@@ -27,6 +27,9 @@ from petsc4py import PETSc
 from .errors import NumericalError
 
 DEFAULT_PC = "ml"
+# PETSc options for the default preconditioner, unless the command line sets them: one SOR sweep per
+# level instead of two (64³ cavity: 11 CG iterations instead of 9, but 0.19 s per solve instead of 0.28)
+PC_DEFAULTS = {"ml": {"mg_levels_ksp_max_it": "1", "pc_ml_maxCoarseSize": "500"}}
 _REASONS = {getattr(PETSc.KSP.ConvergedReason, name): name for name in dir(PETSc.KSP.ConvergedReason)
             if name.isupper()}
 
@@ -118,6 +121,10 @@ class CellKSP:
         sizes = (self.n_owned, mesh.n_global_cells)
         self._x = PETSc.Vec().createWithArray(self._x_array, size=sizes, comm=self.comm)
         self._b = PETSc.Vec().createWithArray(self._b_array, size=sizes, comm=self.comm)
+        options = PETSc.Options(prefix)
+        for key, value in PC_DEFAULTS.get(options.getString("pc_type", pc_type), {}).items():
+            if not options.hasName(key):
+                options.setValue(key, value)
         ksp = PETSc.KSP().create(comm=self.comm)
         ksp.setOptionsPrefix(prefix)
         ksp.setOperators(matrix)
