@@ -106,6 +106,8 @@ def restore(comm, data: dict, mesh, simulation, path: Path) -> None:
     simulation.time, simulation.step = float(attrs["time"]), int(attrs["step"])
     simulation.removed = int(attrs["removed"])
     simulation._first_free_id = int(attrs["next_id"])
+    if simulation.fluid_state is not None:  # the flow has carried every particle of the checkpoint
+        simulation.flow_knows_id = simulation._first_free_id - 1
     for injector, k in zip(simulation.injectors, releases):
         injector.next_release = int(k)
     particles = data["particles"]

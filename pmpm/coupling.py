@@ -204,6 +204,21 @@ class Coupling:
             self.patch(u, c, alpha, new_v[p] + np.cross(new_omega[p], r))
         return force, torque
 
+    def carry_fluid(self, state: ParticleState, touched: Touched, u: np.ndarray, fresh: np.ndarray) -> None:
+        """Local (owned rows of ``u``). Particles new to the flow (present at the start, or just
+        injected): the fluid they cover is the solver's, not the user's, so it starts moving with
+        them. Otherwise a particle released at speed into still fluid would spend its first step
+        accelerating its own volume of fluid (a ρp/ρf = 2 sphere lost half its momentum so)."""
+        if not self.two_way:
+            return
+        p, c = touched.particle, touched.cell
+        total_alpha = np.bincount(c, touched.alpha, minlength=self.mesh.n_owned_cells)
+        pick = fresh[p]
+        p, c = p[pick], c[pick]
+        alpha = touched.alpha[pick] / np.maximum(total_alpha[c], 1.0)
+        rigid = state.v[p] + np.cross(state.omega[p], self.mesh.cell_center[c] - state.x[p])
+        self.patch(u, c, alpha, rigid)
+
     def patch(self, u, cell, alpha, target):
         """u ← (1 − α) u + α target in the touched owned cells (eq. 1's velocity patch)."""
         change = alpha[:, None] * (target - u[cell])

@@ -133,6 +133,7 @@ class Simulation:
             self.fluid_state = self.flow.initial_state()
             self.coupling = Coupling(mesh, case.coupling, case.fluid.density)
             self.volume_fraction = np.zeros(mesh.n_local_cells)
+            self.flow_knows_id = -1   # particles with larger ids have not been in the flow yet
             self.cfl_warned = False
         self.hydro_force = np.zeros((0, 3))
         self.hydro_torque = np.zeros((0, 3))
@@ -261,6 +262,11 @@ class Simulation:
         state, coupling = self.particles, self.coupling
         with Timer(self.times, "coupling"):
             touched = coupling.locate(state)
+            fresh = state.id > self.flow_knows_id
+            if fresh.any():   # same on every rank: the particles are replicated
+                coupling.carry_fluid(state, touched, self.fluid_state.u, fresh)
+                self.mesh.update_ghosts(self.fluid_state.u)
+                self.flow_knows_id = int(state.id.max())
         hydro = {}
 
         def patch(u_star, last):
