@@ -42,6 +42,7 @@ LOCAL_REACH = 6       # a slow contact mid-step settles the particles within thi
 GS_SWEEPS = 50        # Gauss–Seidel sweeps for the friction of coupled resting contacts
 DENSE_ROWS = 600      # contact systems up to this size are solved with dense matrices
 PARALLEL = 1 - 1e-4   # wall contacts of one particle with normals closer than ~0.8° count as one
+DENSE_TOL = 1e-2      # relative to rest_speed: a dense step's sweeps stop when no velocity changes more
 GAP_TOL = 1e-7        # relative to the radius: a predicted wall contact further than this is rescheduled
 
 
@@ -167,7 +168,11 @@ def cross(a, b) -> np.ndarray:
     a, b = np.asarray(a), np.asarray(b)
     a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
     b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
-    return np.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1)
+    out = np.empty(np.broadcast_shapes(a.shape, b.shape), np.result_type(a, b))
+    out[..., 0] = a1 * b2 - a2 * b1
+    out[..., 1] = a2 * b0 - a0 * b2
+    out[..., 2] = a0 * b1 - a1 * b0
+    return out
 
 
 def rodrigues(axis_rate: np.ndarray, t: np.ndarray):
@@ -230,6 +235,9 @@ class CollisionSettings:
     ``rest_speed`` (m/s): contacts approaching slower than this are inelastic (resting contact);
     ``max_events_per_particle``: the event budget of one step is this × the particle count (at
     least ``min_events``); past it the step ends with every remaining contact made inelastic.
+    ``dense_contacts``: a step that starts with at least this many contacts (touching, or able to
+    close within the step) is a dense step, solved at once (``EventLoop.dense_step``) instead of
+    event by event; 0 never. ``dense_sweeps``: the most Gauss–Seidel sweeps of a dense step.
     """
 
     restitution: float = DEFAULT_RESTITUTION
@@ -238,6 +246,8 @@ class CollisionSettings:
     rest_speed: float = 0.0
     max_events_per_particle: int = 50
     min_events: int = 1000
+    dense_contacts: int = 256
+    dense_sweeps: int = 60
 
 
 def collision_settings(case) -> CollisionSettings:
@@ -456,7 +466,7 @@ class EventLoop:
         self.quiet = 1e-3 * settings.rest_speed
         self.heap, self.seq = [], 0
         self.stats = {"particle_collisions": 0, "wall_collisions": 0, "resting_contacts": 0, "events": 0,
-                      "capped": False, "deposited": 0, "fallbacks": 0}
+                      "capped": False, "deposited": 0, "fallbacks": 0, "dense_steps": 0, "dense_contacts": 0, "sweeps": 0}
         self.max_events = max(settings.max_events_per_particle * n, settings.min_events)
         self.has_walls = walls is not None and len(walls) > 0 and bool(self.free.any())
         if self.has_walls:
@@ -466,6 +476,12 @@ class EventLoop:
     def run(self) -> dict:
         if len(self.state) == 0:
             return self.stats
+        if self.settings.dense_contacts > 0 and 2 * len(self.state) >= self.settings.dense_contacts:
+            contacts = self.step_contacts()
+            if contacts and len(contacts["i"]) >= self.settings.dense_contacts:
+                self.dense_step(contacts)
+                self.finish()
+                return self.stats
         if self.settings.rest_speed > 0:
             self.settle()
         self.schedule_all()
@@ -663,6 +679,165 @@ class EventLoop:
         if len(bodies):
             self.speed = max(self.speed, float(np.sqrt((self.v[bodies] ** 2).sum(1).max())))
 
+
+    # -- a dense step: every contact of the step at once -------------------------------------------
+    def step_contacts(self) -> dict:
+        """Contacts that touch at the step's start or can close within it at the relative speed
+        of their centres (the pair search reaches 2 × the largest speed × dt)."""
+        c = self.touching_contacts(0.0, reach=2 * self.speed * self.dt)
+        if not c or len(c["i"]) == 0:
+            return c
+        n = len(self.state)
+        j = np.minimum(c["j"], n - 1)
+        dv = self.v[c["i"]] - np.where((c["j"] < n)[:, None], self.v[j], 0.0) - c["u_wall"]
+        speed = np.sqrt((dv * dv).sum(1))
+        keep = c["gap"] <= speed * self.dt + CONTACT_TOL * self.radius[c["i"]]
+        return {key: value[keep] for key, value in c.items()}
+
+    def dense_step(self, c):
+        """Solve every contact of the step at once (time-stepping contact dynamics), for beds and
+        dense flows where events would cascade. Each contact gets a target normal velocity for
+        the end of the step: a touching contact approaching faster than ``rest_speed`` rebounds
+        with its restitution e (Newton's law), one that would close a gap g within the step
+        rebounds so that its end-of-step separation is the one of the event solution,
+        e (u dt − g) (target e u − (1 + e) g / dt), a slower one closes its gap but not more
+        (−g / dt), an overlap opens at 0.2 overlap / dt. Impulses: normal >= 0, tangential in the
+        Coulomb cone; projected Gauss–Seidel over the contacts, vectorised by colouring them so
+        that no two contacts of a colour share a free particle, warm-started from the impulses
+        of the previous step (by particle ids). Then everything flies to the end of the step."""
+        state, n, s = self.state, len(self.state), self.settings
+        c = unique_wall_contacts(c)
+        c = self.deposit_touching(c, 0.0)
+        i, j, m = c["i"], c["j"], len(c["i"])
+        dt = self.dt
+        inv_m, inv_i = np.append(self.inv_mass, 0.0), np.append(self.inv_inertia, 0.0)
+        V = np.vstack([self.v, np.zeros((1, 3))])
+        W = np.vstack([state.omega, np.zeros((1, 3))])
+        normal, arm_i, arm_j, u_wall, mu = c["normal"], c["arm_i"], c["arm_j"], c["u_wall"], c["mu"]
+        e = np.full(m, s.restitution)
+        if self.has_walls:
+            e[c["wall"]] = self.walls.restitution[c["k"][c["wall"]]]
+        closing = -(self.relative_velocity(c) * normal).sum(1)
+        gap = c["gap"]
+        bounce = np.where(closing > s.rest_speed, e, 0.0)
+        target = np.maximum(np.where(gap > 0, -gap / dt, -0.2 * gap / dt),
+                            bounce * closing - (1 + bounce) * np.maximum(gap, 0.0) / dt)
+        k_n = inv_m[i] + inv_m[j]
+        k_t = k_n + inv_i[i] * (arm_i * arm_i).sum(1) + inv_i[j] * (arm_j * arm_j).sum(1)
+        # colours: contacts of one colour share no free particle
+        free = inv_m > 0
+        order, bounds = colour_contacts(i, j, free)
+        i, j, normal, arm_i, arm_j, u_wall, mu, target, k_n, k_t, gap, closing = (
+            a[order] for a in (i, j, normal, arm_i, arm_j, u_wall, mu, target, k_n, k_t, gap, closing))
+        c = {key: value[order] for key, value in c.items()}
+        # spheres: the arms are −r_i n and r_j n, so ω × arm and arm × J are ∓r (ω × n), ∓r (n × J)
+        r_i = np.sqrt((arm_i * arm_i).sum(1))
+        r_j = np.sqrt((arm_j * arm_j).sum(1))
+        VW = np.hstack([V, W])  # (n + 1, 6): one gather and one scatter per body and colour
+        lam_n, lam_t = self.warm_start(c)
+        if lam_n.any():  # the previous step's impulses, projected on today's normals and cones
+            lam_n = np.maximum(lam_n, 0.0)
+            lam_t -= (lam_t * normal).sum(1)[:, None] * normal
+            size = np.sqrt((lam_t * lam_t).sum(1))
+            lam_t *= np.minimum(1.0, mu * lam_n / np.maximum(size, 1e-300))[:, None]
+            J = lam_n[:, None] * normal + lam_t
+            nJ = cross(normal, J)
+            VW[:, :3] += bincount3(i, J * inv_m[i, None], n + 1) - bincount3(j, J * inv_m[j, None], n + 1)
+            VW[:, 3:] -= (bincount3(i, nJ * (inv_i[i] * r_i)[:, None], n + 1)
+                          + bincount3(j, nJ * (inv_i[j] * r_j)[:, None], n + 1))
+        tol = DENSE_TOL * s.rest_speed if s.rest_speed > 0 else 1e-9 * (np.abs(closing).max() + 1e-300)
+        groups = []
+        for lo, hi in zip(bounds[:-1], bounds[1:]):
+            g = slice(lo, hi)
+            groups.append((g, i[g], j[g], normal[g], r_i[g, None], r_j[g, None], u_wall[g], target[g],
+                           1.0 / k_n[g], 1.0 / k_t[g, None], mu[g], inv_m[i[g], None], inv_m[j[g], None],
+                           (inv_i[i[g]] * r_i[g])[:, None], (inv_i[j[g]] * r_j[g])[:, None], k_n[g]))
+        sweeps = 0
+        for sweeps in range(1, s.dense_sweeps + 1):
+            largest = 0.0
+            for g, a, b, nrm, ra, rb, uw, goal, kn, kt, mu_g, ma, mb, ia, ib, w_n in groups:
+                A, B = VW[a], VW[b]
+                u = A[:, :3] - B[:, :3] - uw - cross(ra * A[:, 3:] + rb * B[:, 3:], nrm)
+                u_n = (u * nrm).sum(1)
+                old_n = lam_n[g]
+                new_n = np.maximum(old_n + (goal - u_n) * kn, 0.0)
+                old_t = lam_t[g]
+                trial = old_t - (u - u_n[:, None] * nrm) * kt
+                size = np.sqrt((trial * trial).sum(1))
+                limit = mu_g * new_n
+                over = size > limit
+                if over.any():
+                    trial[over] *= (limit[over] / size[over])[:, None]
+                d_n = new_n - old_n
+                J = d_n[:, None] * nrm + (trial - old_t)
+                lam_n[g], lam_t[g] = new_n, trial
+                nJ = cross(nrm, J)
+                A[:, :3] += ma * J
+                A[:, 3:] -= ia * nJ
+                B[:, :3] -= mb * J
+                B[:, 3:] -= ib * nJ
+                VW[a], VW[b] = A, B
+                change = float(np.abs(J).max()) * float(w_n.max()) if len(J) else 0.0
+                largest = max(largest, change)
+            if largest <= tol:
+                break
+        V, W = VW[:, :3], VW[:, 3:]
+        self.v[:] = V[:n]
+        state.omega[:] = W[:n]
+        self.remember(c, lam_n, lam_t)
+        active = lam_n > 0
+        impact = active & (closing > s.rest_speed)
+        wall = c["wall"]
+        self.stats["particle_collisions"] += int((impact & ~wall).sum())
+        self.stats["wall_collisions"] += int((impact & wall).sum())
+        self.stats["resting_contacts"] += int((active & ~impact).sum())
+        self.stats["dense_steps"] = 1
+        self.stats["dense_contacts"] = m
+        self.stats["sweeps"] = sweeps
+        touching = gap <= CONTACT_TOL * self.radius[i]
+        size = np.sqrt((lam_t * lam_t).sum(1))
+        sticking = touching & active & (size < mu * lam_n * (1 - 1e-9))
+        rolling = np.flatnonzero(wall & (c["mu_r"] > 0) & sticking)
+        if len(rolling):
+            self.roll_resistance(i[rolling], normal[rolling], u_wall[rolling], lam_n[rolling], c["mu_r"][rolling])
+
+    def contact_keys(self, c) -> np.ndarray:
+        """One integer per contact from the particle ids (a wall: its triangle), stable across steps."""
+        ids = self.state.id
+        other = np.where(c["wall"], -1 - c["k"], ids[np.minimum(c["j"], len(ids) - 1)])
+        first, second = ids[c["i"]], other
+        swap = ~c["wall"] & (first > second)
+        first, second = np.where(swap, second, first), np.where(swap, first, second)
+        return first.astype(np.int64) * (1 << 31) + (second.astype(np.int64) + (1 << 30))
+
+    def warm_start(self, c):
+        """Normal and tangential impulses (on i) of these contacts in the previous dense step."""
+        m = len(c["i"])
+        lam_n, lam_t = np.zeros(m), np.zeros((m, 3))
+        memory = getattr(self.state, "_dense_memory", None)
+        if memory is None or len(memory[0]) == 0 or m == 0:
+            return lam_n, lam_t
+        keys, old_n, old_t, old_sign = memory
+        now = self.contact_keys(c)
+        at = np.minimum(np.searchsorted(keys, now), len(keys) - 1)
+        found = keys[at] == now
+        sign = self.key_sign(c)
+        lam_n[found] = old_n[at[found]]
+        lam_t[found] = old_t[at[found]] * (old_sign[at[found]] * sign[found])[:, None]
+        return lam_n, lam_t
+
+    def key_sign(self, c) -> np.ndarray:
+        """+1 where contact i is the key's first particle, −1 where the pair was swapped."""
+        ids = self.state.id
+        pair = ~c["wall"]
+        sign = np.ones(len(c["i"]))
+        sign[pair] = np.where(ids[c["i"][pair]] > ids[c["j"][pair]], -1.0, 1.0)
+        return sign
+
+    def remember(self, c, lam_n, lam_t):
+        keys = self.contact_keys(c)
+        order = np.argsort(keys, kind="stable")
+        self.state._dense_memory = (keys[order], lam_n[order], lam_t[order], self.key_sign(c)[order])
 
     # -- impacts, in time order -------------------------------------------------------------------
     def push(self, times, kind, i, others, start):
@@ -1115,6 +1290,35 @@ class ContactSet:
         if converged and lam.any():
             self.apply(rows, lam[:, None] * normal)
         return converged
+
+
+
+def colour_contacts(i, j, free) -> tuple[np.ndarray, np.ndarray]:
+    """Order contacts (bodies i, j) into colours, none of which holds two contacts sharing a
+    ``free`` body: returns the permutation and the colours' bounds in it. Rounds of a random
+    priority: a contact joins the colour when it outranks every uncoloured contact of its free
+    bodies (deterministic: the priorities are seeded)."""
+    m = len(i)
+    if m == 0:
+        return np.zeros(0, np.int64), np.zeros(1, np.int64)
+    nb = int(max(i.max(), j.max())) + 1
+    priority = np.random.default_rng(12345).permutation(m)
+    colour = np.full(m, -1)
+    left = np.arange(m)
+    count = 0
+    while len(left):
+        a, b, p = i[left], j[left], priority[left]
+        best = np.full(nb, -1)
+        fa, fb = free[a], free[b]
+        np.maximum.at(best, a[fa], p[fa])
+        np.maximum.at(best, b[fb], p[fb])
+        wins = (~fa | (best[a] == p)) & (~fb | (best[b] == p))
+        colour[left[wins]] = count
+        left = left[~wins]
+        count += 1
+    order = np.argsort(colour, kind="stable")
+    bounds = np.searchsorted(colour[order], np.arange(count + 1))
+    return order, bounds
 
 
 def bincount3(index, values, n) -> np.ndarray:
