@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
+FILL_TIME = 0.6
 PEER = ROOT.parent / "shared" / "peers" / "liggghts_hopper.sh"
 sys.path.insert(0, str(ROOT / "tools"))
 from hopper_mesh import DENSITY, DIAMETER, ORIFICE, hopper_mesh, particles  # noqa: E402
@@ -30,6 +31,7 @@ CASE = """
 end_time = {end_time}
 dt = {dt}
 output_every = {end_time}
+checkpoint_every = {end_time}
 gravity = [0.0, 0.0, -9.81]
 [mesh]
 file = "hopper.msh"
@@ -43,11 +45,13 @@ friction = 0.3
 """
 
 
-def pmpm(folder, ranks, **values):
+def pmpm(folder, ranks, restart=None, **values):
     (folder / "case.toml").write_text(CASE.format(**values))
     flags = ["--oversubscribe", "--quiet"] + (["--allow-run-as-root"] if os.geteuid() == 0 else [])
     command = ["mpirun", *flags, "-n", str(ranks), str(ROOT / ".venv/bin/python"), "-m", "pmpm", str(folder),
                "--quiet", "--output", str(folder / f"out{ranks}_{values['orifice']}")]
+    if restart is not None:
+        command += ["--restart", str(restart)]
     start = time.perf_counter()
     result = subprocess.run(command, capture_output=True, text=True)
     seconds = time.perf_counter() - start
@@ -68,19 +72,18 @@ def main():
     table = np.column_stack([xyz, np.full(len(xyz), DIAMETER / 2), np.full(len(xyz), DENSITY)])
     np.savetxt(folder / "loose.txt", table, header="x y z radius density", comments="", fmt="%.6g")
 
-    fill_seconds, _, out = pmpm(folder, 2, end_time=0.6, dt=dt, orifice="wall", particles="loose.txt")
-    rows = np.loadtxt(out / "particles.csv", delimiter=",", skiprows=1)
-    settled = rows[rows[:, 0] == rows[:, 0].max()]
-    np.savetxt(folder / "settled.txt", settled[:, [2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12]],
-               header="x y z vx vy vz wx wy wz radius density", comments="", fmt="%.9g")
-    print(f"fill: {count} particles settled for 0.6 s in {fill_seconds:.0f} s (untimed)", flush=True)
+    fill_seconds, fill, out = pmpm(folder, 1, end_time=FILL_TIME, dt=dt, orifice="wall", particles="loose.txt")
+    print(f"fill: {count} particles settled for {FILL_TIME} s in {fill_seconds:.0f} s on 1 rank (untimed)", flush=True)
+    checkpoint = out / "checkpoint.h5"
 
     bulk = 0.6 * DENSITY
     beverloo = 0.58 * bulk * np.sqrt(9.81) * (2 * ORIFICE - 1.5 * DIAMETER) ** 2.5   # kg/s
     beverloo_rate = beverloo / (DENSITY * np.pi * DIAMETER ** 3 / 6)
     results = {}
     for ranks in (1, 2):
-        seconds, summary, _ = pmpm(folder, ranks, end_time=sim_time, dt=dt, orifice="outlet", particles="settled.txt")
+        # the discharge continues the fill's checkpoint with the orifice open
+        seconds, summary, _ = pmpm(folder, ranks, restart=checkpoint, end_time=FILL_TIME + sim_time, dt=dt,
+                                   orifice="outlet", particles="loose.txt")
         collisions = summary["diagnostics"].get("collisions", {})
         events = collisions.get("particle_collisions", 0) + collisions.get("wall_collisions", 0)
         discharged = summary["particles_removed"]

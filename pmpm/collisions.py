@@ -749,14 +749,17 @@ class EventLoop:
         groups = []
         for lo, hi in zip(bounds[:-1], bounds[1:]):
             g = slice(lo, hi)
-            groups.append((g, i[g], j[g], normal[g], r_i[g, None], r_j[g, None], u_wall[g], target[g],
-                           1.0 / k_n[g], 1.0 / k_t[g, None], mu[g], inv_m[i[g], None], inv_m[j[g], None],
-                           (inv_i[i[g]] * r_i[g])[:, None], (inv_i[j[g]] * r_j[g])[:, None], k_n[g]))
+            a, b = i[g], j[g]
+            groups.append((g, np.concatenate([a, b]), hi - lo, normal[g], r_i[g, None], r_j[g, None], u_wall[g],
+                           target[g], 1.0 / k_n[g], 1.0 / k_t[g, None], mu[g],
+                           np.concatenate([inv_m[a], -inv_m[b]])[:, None],
+                           -np.concatenate([inv_i[a] * r_i[g], inv_i[b] * r_j[g]])[:, None], float(k_n[g].max())))
         sweeps = 0
         for sweeps in range(1, s.dense_sweeps + 1):
             largest = 0.0
-            for g, a, b, nrm, ra, rb, uw, goal, kn, kt, mu_g, ma, mb, ia, ib, w_n in groups:
-                A, B = VW[a], VW[b]
+            for g, ab, k, nrm, ra, rb, uw, goal, kn, kt, mu_g, lin, ang, w_n in groups:
+                AB = VW[ab]
+                A, B = AB[:k], AB[k:]
                 u = A[:, :3] - B[:, :3] - uw - cross(ra * A[:, 3:] + rb * B[:, 3:], nrm)
                 u_n = (u * nrm).sum(1)
                 old_n = lam_n[g]
@@ -764,21 +767,14 @@ class EventLoop:
                 old_t = lam_t[g]
                 trial = old_t - (u - u_n[:, None] * nrm) * kt
                 size = np.sqrt((trial * trial).sum(1))
-                limit = mu_g * new_n
-                over = size > limit
-                if over.any():
-                    trial[over] *= (limit[over] / size[over])[:, None]
-                d_n = new_n - old_n
-                J = d_n[:, None] * nrm + (trial - old_t)
+                trial *= np.minimum(1.0, mu_g * new_n / np.maximum(size, 1e-300))[:, None]
+                J = (new_n - old_n)[:, None] * nrm + (trial - old_t)
                 lam_n[g], lam_t[g] = new_n, trial
-                nJ = cross(nrm, J)
-                A[:, :3] += ma * J
-                A[:, 3:] -= ia * nJ
-                B[:, :3] -= mb * J
-                B[:, 3:] -= ib * nJ
-                VW[a], VW[b] = A, B
-                change = float(np.abs(J).max()) * float(w_n.max()) if len(J) else 0.0
-                largest = max(largest, change)
+                J2 = np.vstack([J, J])
+                AB[:, :3] += lin * J2
+                AB[:, 3:] += ang * cross(np.vstack([nrm, nrm]), J2)
+                VW[ab] = AB
+                largest = max(largest, float(np.abs(J).max()) * w_n)
             if largest <= tol:
                 break
         V, W = VW[:, :3], VW[:, 3:]

@@ -251,7 +251,8 @@ class Simulation:
                 if outside.any():
                     self.removed += int(outside.sum())
                     state.remove(outside)
-                    self.hydro_force, self.hydro_torque = self.hydro_force[~outside], self.hydro_torque[~outside]
+                    if len(self.hydro_force) == len(outside):  # empty without [fluid]
+                        self.hydro_force, self.hydro_torque = self.hydro_force[~outside], self.hydro_torque[~outside]
         self.time += dt
         self.step += 1
         check_finite(state, self.step, self.time)
