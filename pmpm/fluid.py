@@ -240,6 +240,7 @@ class FlowSolver:
         Returns diagnostics."""
         rho, nu, V = self.rho, self.nu, self.volume
         u, p, flux = state.u, state.p, state.flux
+        momentum_solvers = self._momentum_solvers(dt)  # (re)assembled before the step's temporaries exist
         n_int = self.n_interior
 
         # 1. predictor
@@ -269,7 +270,7 @@ class FlowSolver:
         u_star = u.copy()
         passes = forcing_iterations if patch is not None else 1
         for forcing_pass in range(passes):
-            for k, solver in enumerate(self._momentum_solvers(dt)):
+            for k, solver in enumerate(momentum_solvers):
                 column = np.ascontiguousarray(u_star[:, k])
                 solver.solve(rhs[:, k], column, step, time)
                 u_star[:, k] = column
