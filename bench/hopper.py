@@ -1,6 +1,6 @@
 """DEM-only hopper discharge (no flow), pmpm against LIGGGHTS on the same work.
 
-    .venv/bin/python bench/hopper.py [N [SIM_TIME [DT]]]      # defaults: 10000 particles, 1.0 s, 5e-4 s
+    .venv/bin/python bench/hopper.py [N [SIM_TIME [DT]]]      # defaults: 10000 particles, 1.0 s, 2e-3 s
 
 The peer's geometry and particles (../shared/peers/liggghts_hopper.sh): conical hopper, orifice
 D0 = 30 mm, spheres d = 4 mm, ρ = 2500, restitution 0.9, friction 0.3. As the peer does, the
@@ -64,7 +64,7 @@ def pmpm(folder, ranks, restart=None, **values):
 def main():
     count = int(sys.argv[1]) if len(sys.argv) > 1 else 10000
     sim_time = float(sys.argv[2]) if len(sys.argv) > 2 else 1.0
-    dt = float(sys.argv[3]) if len(sys.argv) > 3 else 5e-4
+    dt = float(sys.argv[3]) if len(sys.argv) > 3 else 2e-3
     import meshio
     folder = Path(tempfile.mkdtemp(prefix="pmpm_hopper_"))
     meshio.write(str(folder / "hopper.msh"), hopper_mesh(), file_format="gmsh22", binary=False)

@@ -404,6 +404,50 @@ def test_event_cap_finishes_the_step():
     assert np.all(np.diff(state.v[:, 2]) >= -1e-9) and state.v[0, 2] >= -1e-9
 
 
+# -- dense steps (every contact of the step solved at once) --------------------------------------
+@pytest.mark.parametrize("e", [1.0, 0.5])
+def test_dense_step_touching_pair(e):
+    """A touching pair approaching at u, solved as a dense step: it leaves at e u, momentum and
+    the centre of mass as without contact."""
+    r, u, dt = 0.01, 0.3, 1e-3
+    state = particles([[0, 0, 0], [2 * r, 0, 0]], [[u / 2, 0, 0], [-u / 2, 0, 0]], radius=r, density=[1000.0, 3000.0])
+    p0 = state.mass @ state.v
+    stats = advance_with_collisions(state, None, dt, CollisionSettings(restitution=e, friction=0.3, rest_speed=0.01,
+                                                                         dense_contacts=1))
+    assert stats["dense_steps"] == 1 and stats["particle_collisions"] == 1
+    assert state.v[1, 0] - state.v[0, 0] == pytest.approx(e * u, rel=1e-12)
+    assert np.allclose(state.mass @ state.v, p0, rtol=0, atol=1e-15)
+    assert np.allclose(state.v[:, 1:], 0) and np.allclose(state.omega, 0)
+
+
+def test_dense_step_gap_closing_within_the_step():
+    """A ball a gap g above the floor falling at u (u dt > g), as a dense step: at the end of the
+    step its gap is e (u dt − g), the event solution's."""
+    r, u, dt, g, e = 0.01, 1.0, 1e-3, 3e-4, 0.8
+    state = particles([[0, 0, r + g]], [[0, 0, -u]], radius=r)
+    settings = CollisionSettings(restitution=e, friction=0.3, rest_speed=0.01, dense_contacts=1)
+    stats = advance_with_collisions(state, floor(restitution=e), dt, settings)
+    assert stats["dense_steps"] == 1 and stats["wall_collisions"] == 1
+    assert state.x[0, 2] - r == pytest.approx(e * (u * dt - g), rel=1e-9)
+
+
+def test_dense_bed_rests():
+    """Three layers of 10 × 10 touching balls on a floor, walled in: every step is a dense step,
+    and after 200 steps under gravity no ball has moved or sunk by more than 1e-3 d."""
+    r, dt, side = 0.01, 1e-3, 0.2
+    grid = r + 2 * r * np.arange(10)
+    x = np.array([[a, b, r + 2 * r * k] for k in range(3) for a in grid for b in grid])
+    state = particles(x, radius=r)
+    walls = box(side, 0.5, restitution=0.5, friction=0.5)
+    settings = CollisionSettings(restitution=0.5, friction=0.5, rest_speed=3 * G * dt)
+    for _ in range(200):
+        stats = step_under_gravity(state, walls, dt, settings)
+        assert stats["dense_steps"] == 1 and not stats["capped"]
+    assert np.abs(state.x - x).max() < 1e-3 * 2 * r
+    pairs = np.linalg.norm(state.x[:, None] - state.x[None], axis=2) + np.eye(len(x))
+    assert pairs.min() > 2 * r * (1 - 1e-3)
+
+
 # -- set-up helpers ----------------------------------------------------------------------------
 def fake_case(**sections):
     base = dict(path=Path("/tmp/case.toml"), boundaries={}, collisions=None, deposition=None, coupling=None,
