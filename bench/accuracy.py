@@ -2,7 +2,7 @@
 knobs (cells per diameter, volume-fraction rule, forcing passes, time step as the diffusion
 number ν dt/h²). Writes bench/results/accuracy.csv and accuracy.png and prints the table.
 
-    .venv/bin/python bench/accuracy.py            # about 5 minutes on one core
+    .venv/bin/python bench/accuracy.py            # about 20 minutes on one core (--settling: that part only)
 
 The case is tests/test_coupling.py's: a fixed sphere in creeping flow (Re = 0.02) with the exact
 Stokes solution on every boundary face, so the reference is 6πμaU with no wall correction.
@@ -29,6 +29,8 @@ KNOBS = [  # cells per diameter, rule, forcing passes, diffusion number
 
 
 def main():
+    if "--settling" in sys.argv:
+        return settling()
     out = ROOT / "bench" / "results"
     out.mkdir(parents=True, exist_ok=True)
     rows = []
@@ -64,30 +66,42 @@ def main():
     settling()
 
 
-def settling(d=0.008, rho_p=1500.0, rho_f=1000.0, mu=0.1, lateral_diameters=6):
-    """A sphere settling from rest in a closed box of liquid, Re ≈ 8: the speed reached after 0.5 s
-    against Schiller–Naumann, unbounded and with the Di Felice (1996) tube-wall factor (λ = d over
-    the equal-area diameter of the square box)."""
-    unbounded = terminal_velocity(rho_p, rho_f, mu, d)
-    reynolds = rho_f * unbounded * d / mu
-    for cpd in (4, 6):
+SETTLING = [  # viscosity (Re ≈ 8 or ≈ 1), cells per diameter, box width in diameters, forcing passes, ν dt/h²
+    (0.1, 4, 6, 3, 0.1), (0.1, 4, 9, 3, 0.1), (0.1, 4, 12, 3, 0.1), (0.1, 6, 6, 3, 0.1), (0.1, 8, 6, 3, 0.1),
+    (0.1, 4, 6, 6, 0.05),
+    (0.4, 4, 6, 3, 0.1), (0.4, 4, 6, 3, 0.05), (0.4, 4, 6, 3, 0.025), (0.4, 4, 6, 6, 0.05), (0.4, 4, 6, 10, 0.025),
+]
+
+
+def settling(d=0.008, rho_p=1500.0, rho_f=1000.0):
+    """A sphere (ρp/ρf = 1.5) settling from rest in a closed box of liquid, 2 widths tall, released
+    1.7 widths up: the speed reached (0.6 s at Re ≈ 8, 0.2 s at Re ≈ 1: terminal, many diameters
+    above the floor) against Schiller–Naumann (unbounded), over box width, resolution, forcing
+    passes and time step. Writes bench/results/settling.csv."""
+    rows = []
+    for mu, cpd, widths, passes, diffusion in SETTLING:
+        unbounded = terminal_velocity(rho_p, rho_f, mu, d)
         h = d / cpd
-        n = int(round(lateral_diameters * d / h))
-        dt = 0.1 * h * h * rho_f / mu
+        n = int(round(widths * d / h))
+        dt = diffusion * h * h * rho_f / mu
         width = n * h
         start = time.perf_counter()
         sim = simulation(MPI.COMM_SELF, Path(tempfile.mkdtemp()), L=width, H=2 * width, n=n, m=2 * n, mu=mu,
                          rho_f=rho_f, rho_p=rho_p, radius=d / 2, rule="subcell", gravity="[0.0, 0.0, -9.81]",
-                         dt=dt, position=f"[{width / 2 + 0.1 * h}, {width / 2 - 0.2 * h}, {1.5 * width}]")
-        speeds = []
-        for _ in range(int(round(0.5 / dt))):
+                         dt=dt, passes=passes, position=f"[{width / 2 + 0.1 * h}, {width / 2 - 0.2 * h}, {1.7 * width}]")
+        for _ in range(int(round((0.6 if mu < 0.2 else 0.2) / dt))):
             sim.advance(dt)
-            speeds.append(-sim.particles.v[0, 2])
-        ratio = d / (width * 2 / np.sqrt(np.pi))
-        wall = ((1 - ratio) / (1 - 0.33 * ratio)) ** ((3.3 + 0.085 * reynolds) / (1 + 0.1 * reynolds))
-        print(f"settling, {cpd} cells/d, box {lateral_diameters} d wide: speed at 0.25 s {speeds[len(speeds) // 2]:.4f}, "
-              f"at 0.5 s {speeds[-1]:.4f} m/s; Schiller–Naumann {unbounded:.4f} (Re {reynolds:.1f}), with the wall "
-              f"factor {wall:.3f}: {unbounded * wall:.4f} m/s; {time.perf_counter() - start:.0f} s", flush=True)
+        speed = -sim.particles.v[0, 2]
+        rows.append(dict(reynolds=round(rho_f * unbounded * d / mu, 2), cells_per_diameter=cpd, box_diameters=widths,
+                         forcing_passes=passes, diffusion_number=diffusion, speed=speed,
+                         speed_over_schiller_naumann=speed / unbounded, wall_seconds=time.perf_counter() - start))
+        print(f"settling Re {rows[-1]['reynolds']:4.1f}, {cpd} cells/d, box {widths:2d} d, {passes:2d} passes, "
+              f"ν dt/h² {diffusion:5.3f}: {speed:.4f} m/s = {speed / unbounded:.3f} × Schiller–Naumann unbounded "
+              f"({unbounded:.4f}); {rows[-1]['wall_seconds']:.0f} s", flush=True)
+    with open(ROOT / "bench" / "results" / "settling.csv", "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
 
 
 if __name__ == "__main__":
