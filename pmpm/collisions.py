@@ -20,6 +20,10 @@ Fixed, prescribed and deposited particles and walls have infinite mass. A contac
 slower than ``rest_speed`` (of the order of |g| dt) is a resting contact: inelastic (e = 0), and
 solved together with the resting contacts around it (a stack, a bed) by a small linear
 complementarity solve instead of a cascade of ever smaller, ever more frequent bounces.
+
+Dense packings (a hopper: thousands of contacts per step) are not stepped event by event: a step
+that starts with many contacts solves them all at once (time-stepping contact dynamics,
+``EventLoop.dense_step``), at a cost that grows with the contacts, not with the events.
 """
 from __future__ import annotations
 
@@ -445,6 +449,9 @@ class EventLoop:
        left to the next step.
     3. Past the event budget, every touching contact is solved as in 1 and everything flies
        freely to the end of the step (``capped`` in the returned counts).
+    4. A dense step (a bed, a hopper: at least ``dense_contacts`` contacts touching or able to
+       close within the step) skips 1-3: all its contacts are solved at once (``dense_step``),
+       impacts with their restitution, resting ones inelastic; events would cascade there.
     """
 
     def __init__(self, state, walls, dt, settings):
@@ -483,6 +490,7 @@ class EventLoop:
                 self.dense_step(contacts)
                 self.finish()
                 return self.stats
+        self.state._dense_memory = None  # impulses are remembered from one dense step to the next only
         if self.settings.rest_speed > 0:
             self.settle()
         self.schedule_all()
