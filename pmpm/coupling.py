@@ -145,10 +145,11 @@ class Coupling:
         """Collective. Momentum exchange of one flow step (or one forcing pass of it).
 
         Sums, over ranks, the fluid mass each particle covers and its momentum deviation from the
-        particle's rigid motion. Before the last pass (multi-direct forcing, ``pmpm.fluid``) it
-        patches the current rigid motion into ``u`` and keeps the sums; on the last pass it solves
-        the particle update (module docstring) with all passes' momentum and, in two-way mode,
-        patches the new rigid velocity into the owned rows of ``u`` (the predicted velocity).
+        particle's rigid motion as the last pass patched it. Every pass (multi-direct forcing,
+        ``pmpm.fluid``) solves the particle update (module docstring) with the momentum of all
+        passes so far and, in two-way mode, patches the updated rigid motion into the owned rows
+        of ``u``; the last pass returns the forces. (With ``update = "explicit"`` the passes before
+        the last patch the step's first motion, as the paper's single patch does.)
 
         Returns
         -------
@@ -162,7 +163,12 @@ class Coupling:
         alpha = touched.alpha / np.maximum(total_alpha[c], 1.0)          # overlapping particles share a cell
         r = mesh.cell_center[c] - state.x[p]
         mass = self.rho * alpha * mesh.cell_volume[c]
-        rigid = state.v[p] + np.cross(state.omega[p], r)
+        # the velocities patched by the last pass (this step's start for the first): the deviation
+        # from them is the momentum this pass exchanges
+        if self.pending is None or len(self.pending) != n:
+            self.pending = np.zeros((n, 6))
+            self.patched_v, self.patched_omega = state.v, state.omega
+        rigid = self.patched_v[p] + np.cross(self.patched_omega[p], r)
         deviation = mass[:, None] * (u[c] - rigid)
         sums = np.zeros((n, 8))
         sums[:, 0] = np.bincount(p, mass, minlength=n)
@@ -174,16 +180,13 @@ class Coupling:
         sums[:, 7] = np.bincount(p, mass * (2.0 / 3.0) * np.einsum("ij,ij->i", r, r), minlength=n)
         if self.comm.size > 1:
             self.comm.Allreduce(MPI.IN_PLACE, sums, op=MPI.SUM)
-        if self.pending is None or len(self.pending) != n:
-            self.pending = np.zeros((n, 6))
-        if not last:
-            self.pending += sums[:, 1:7]
-            self.patch(u, c, alpha, rigid)
-            return None
-        sums[:, 1:7] += self.pending
-        self.pending = None
-        covered, momentum, angular, moment = sums[:, 0], sums[:, 1:4], sums[:, 4:7], sums[:, 7]
+        self.pending += sums[:, 1:7]
+        covered, moment = sums[:, 0], sums[:, 7]
+        momentum, angular = self.pending[:, :3], self.pending[:, 3:]
 
+        # the particle update from all the momentum exchanged so far, every pass: the next pass then
+        # patches the updated motion, so the passes converge on particle and fluid together (patching
+        # the step's first velocity every pass made light particles ring on coarse meshes)
         free = state.movable
         m, inertia = state.mass, state.inertia
         # θ = min(1, m/M): the covered fluid mass M, not ρf V, decides (on a coarse mesh M can be
@@ -193,15 +196,20 @@ class Coupling:
         theta_spin = np.ones(n) if self.explicit else np.minimum(1.0, inertia / np.maximum(moment, tiny))
         dv = (dt * external_force + momentum) / (m + (1 - theta) * covered)[:, None]
         dw = (dt * external_torque + angular) / (inertia + (1 - theta_spin) * moment)[:, None]
+        new_v = np.where(free[:, None], state.v + dv, state.v)
+        new_omega = np.where(free[:, None], state.omega + dw, state.omega)
+        if self.explicit and not last:   # the paper's update: every pass patches the step's first motion
+            new_v, new_omega = self.patched_v, self.patched_omega
+        if self.two_way:
+            self.patch(u, c, alpha, new_v[p] + np.cross(new_omega[p], r))
+        if not last:
+            self.patched_v, self.patched_omega = new_v, new_omega
+            return None
+        self.pending = None
         force = np.where(free[:, None], m[:, None] * dv / dt - external_force, momentum / dt)
         torque = np.where(free[:, None], inertia[:, None] * dw / dt - external_torque, angular / dt)
         if self.explicit:
             self.watch_ringing(state, np.where(free[:, None], dv, 0.0), step, time)
-
-        if self.two_way:
-            new_v = np.where(free[:, None], state.v + dv, state.v)
-            new_omega = np.where(free[:, None], state.omega + dw, state.omega)
-            self.patch(u, c, alpha, new_v[p] + np.cross(new_omega[p], r))
         return force, torque
 
     def carry_fluid(self, state: ParticleState, touched: Touched, u: np.ndarray, fresh: np.ndarray) -> None:
