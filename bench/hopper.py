@@ -68,6 +68,16 @@ def pmpm(folder, ranks, restart=None, **values):
     return seconds, json.loads((out / "summary.json").read_text()), out
 
 
+def steady_rate(csv, start) -> float:
+    """Particles leaving per second from the output time nearest ``start`` to the last one
+    (Beverloo's law holds past the start-up of the discharge)."""
+    times, counts = np.unique(np.loadtxt(csv, delimiter=",", skiprows=1, usecols=0), return_counts=True)
+    first = int(np.argmin(np.abs(times - start)))
+    if first >= len(times) - 1:
+        return float("nan")
+    return (counts[first] - counts[-1]) / (times[-1] - times[first])
+
+
 def main():
     count = int(sys.argv[1]) if len(sys.argv) > 1 else 10000
     sim_time = float(sys.argv[2]) if len(sys.argv) > 2 else 1.0
@@ -91,16 +101,12 @@ def main():
     for ranks in (1, 2):
         # the discharge continues the fill's checkpoint with the orifice open
         seconds, summary, out = pmpm(folder, ranks, restart=checkpoint, end_time=FILL_TIME + sim_time, dt=dt,
-                                     orifice="outlet", particles="loose.txt", output_every=sim_time / 2)
+                                     orifice="outlet", particles="loose.txt", output_every=sim_time / 10)
         collisions = summary["diagnostics"].get("collisions", {})
         impacts = collisions.get("particle_collisions", 0) + collisions.get("wall_collisions", 0)
         steps = round(sim_time / dt)
         discharged = summary["particles_removed"]
-        # steady rate: the second half of the discharge (Beverloo's law holds past the start-up)
-        times = np.loadtxt(out / "particles.csv", delimiter=",", skiprows=1, usecols=0)
-        left = {round(t, 9): k for t, k in zip(*np.unique(times, return_counts=True))}
-        ordered = [left[t] for t in sorted(left)]
-        steady = (ordered[-2] - ordered[-1]) / (sim_time / 2) if len(ordered) >= 3 else float("nan")
+        steady = steady_rate(out / "particles.csv", FILL_TIME + sim_time / 2)
         results[ranks] = seconds
         print(f"pmpm hopper ranks={ranks} particles={count} sim_time={sim_time} dt={dt} steps={steps} "
               f"wall_s={seconds:.1f} discharged={discharged} rate={discharged / sim_time:.0f}/s "
