@@ -86,7 +86,8 @@ SCHEMA: dict[str, tuple[Key, ...]] = {
         Key("forcing_passes", "int", 3, ">0",
             help="patch-and-diffuse passes per step (multi-direct forcing; 1: the paper's single patch)"),
         Key("update", "str", "implicit", choices=("implicit", "explicit"),
-            help="implicit: stable for any density ratio; explicit: the paper's, unstable for light particles"),
+            help="implicit: stable for light particles (measured to ρp/ρf = 0.3); explicit: the paper's, "
+                 "rings below ρp/ρf ≈ 0.5–1.2 (docs/coupling.md)"),
     ),
     "particles": (
         Key("file", "str", None, help="ASCII particle file: x y z [vx vy vz wx wy wz] radius density"),

@@ -22,7 +22,7 @@ which amplifies a velocity error by (M − m)/m each step: it oscillates and gro
     (m + (1 − θ) M) (Vⁿ⁺¹ − Vⁿ) = dt F_ext + M (ū* − Vⁿ),     θ = min(1, m/M),
 
 (the same for ω with the moments of inertia), which moves V at most all the way to ū*, never past
-it: stable for every density ratio and every mesh. Where m ≥ M (ρ_p ≥ ρ_f with M ≈ ρ_f V) it is
+it (docs/coupling.md has the measured stability map). Where m ≥ M (ρ_p ≥ ρ_f with M ≈ ρ_f V) it is
 the paper's update exactly; for lighter particles it adds M − m to the particle's inertia, an
 error in transients only (terminal velocities are unchanged). ``[coupling] update = "explicit"`` keeps θ = 1 always, and
 the run stops (exit 3) when a particle's velocity starts to ring.
