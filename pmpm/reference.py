@@ -29,12 +29,20 @@ def schiller_naumann_drag_coefficient(reynolds):
     return 24.0 / reynolds * (1 + 0.15 * reynolds ** 0.687)
 
 
-def terminal_velocity(particle_density, fluid_density, viscosity, diameter, gravity=9.81):
-    """Terminal settling speed with the Schiller–Naumann drag, by fixed-point iteration on Re."""
+def square_duct_wall_factor(diameter_over_side: float) -> float:
+    """Creeping-flow drag factor K of a sphere on the axis of a square duct, to first order in
+    λ = d / side: K = 1 / (1 − 1.903 λ) (Haberman's coefficient, as tabulated by Happel & Brenner,
+    Low Reynolds Number Hydrodynamics; the circular tube's is 2.104)."""
+    return 1.0 / (1.0 - 1.903 * diameter_over_side)
+
+
+def terminal_velocity(particle_density, fluid_density, viscosity, diameter, gravity=9.81, wall_factor=1.0):
+    """Terminal settling speed with the Schiller–Naumann drag times ``wall_factor``, by
+    fixed-point iteration on Re."""
     weight = (particle_density - fluid_density) * np.pi * diameter ** 3 / 6 * gravity
-    speed = abs(weight) / (3 * np.pi * viscosity * diameter)          # Stokes first guess
+    speed = abs(weight) / (3 * np.pi * viscosity * diameter * wall_factor)          # Stokes first guess
     for _ in range(200):
         reynolds = fluid_density * speed * diameter / viscosity
-        cd = schiller_naumann_drag_coefficient(reynolds)
+        cd = wall_factor * schiller_naumann_drag_coefficient(reynolds)
         speed = np.sqrt(abs(weight) / (0.5 * fluid_density * cd * np.pi * diameter ** 2 / 4))
     return speed
