@@ -1,6 +1,6 @@
 """Benchmark of the flow solver: the 3-D lid-driven cavity (Re 100) against OpenFOAM's icoFoam.
 
-    .venv/bin/python bench/flow.py                    # the whole table of docs/flow.md (~15 min)
+    .venv/bin/python bench/flow.py                    # the whole table of docs/flow.md (~7 min on an idle 2-core machine)
     .venv/bin/python bench/flow.py --sizes 32 --pcs ml --no-openfoam --no-ghia --no-memory   # ~1 min
 
 Run it without mpirun: it starts ``mpirun -n R`` itself for every (size, ranks, pressure PC) and
