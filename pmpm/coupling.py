@@ -133,6 +133,12 @@ class Coupling:
             alpha[part] = inside.mean(axis=1)
         return alpha
 
+    def shared_alpha(self, touched: Touched) -> np.ndarray:
+        """α of each (particle, cell) pair, scaled down where overlapping particles cover a cell
+        more than once, so that a cell is never patched beyond its own volume."""
+        total = np.bincount(touched.cell, touched.alpha, minlength=self.mesh.n_owned_cells)
+        return touched.alpha / np.maximum(total[touched.cell], 1.0)
+
     def volume_fraction(self, touched: Touched) -> np.ndarray:
         """(n_owned,) particle volume fraction per owned cell, at most 1."""
         total = np.bincount(touched.cell, touched.alpha, minlength=self.mesh.n_owned_cells)
@@ -159,8 +165,7 @@ class Coupling:
         n = len(state)
         mesh = self.mesh
         p, c = touched.particle, touched.cell
-        total_alpha = np.bincount(c, touched.alpha, minlength=mesh.n_owned_cells)
-        alpha = touched.alpha / np.maximum(total_alpha[c], 1.0)          # overlapping particles share a cell
+        alpha = self.shared_alpha(touched)
         r = mesh.cell_center[c] - state.x[p]
         mass = self.rho * alpha * mesh.cell_volume[c]
         # the velocities patched by the last pass (this step's start for the first): the deviation
@@ -219,11 +224,8 @@ class Coupling:
         accelerating its own volume of fluid (a ρp/ρf = 2 sphere lost half its momentum so)."""
         if not self.two_way:
             return
-        p, c = touched.particle, touched.cell
-        total_alpha = np.bincount(c, touched.alpha, minlength=self.mesh.n_owned_cells)
-        pick = fresh[p]
-        p, c = p[pick], c[pick]
-        alpha = touched.alpha[pick] / np.maximum(total_alpha[c], 1.0)
+        pick = fresh[touched.particle]
+        p, c, alpha = touched.particle[pick], touched.cell[pick], self.shared_alpha(touched)[pick]
         rigid = state.v[p] + np.cross(state.omega[p], self.mesh.cell_center[c] - state.x[p])
         self.patch(u, c, alpha, rigid)
 

@@ -427,7 +427,7 @@ def pair_equal_rows(rows: np.ndarray):
         del key
         same = ordered[1:] == ordered[:-1]
     else:
-        order = _row_order(rows)
+        order = np.lexsort(rows.T[::-1])
         ordered = rows[order]
         same = (ordered[1:] == ordered[:-1]).all(axis=1)
     del ordered
