@@ -85,6 +85,11 @@ SCHEMA: dict[str, tuple[Key, ...]] = {
         Key("substeps", "int", 1, ">0", help="particle substeps per flow step"),
         Key("forcing_passes", "int", 3, ">0",
             help="patch-and-diffuse passes per step (multi-direct forcing; 1: the paper's single patch)"),
+        Key("forcing", "str", "penalty", choices=("penalty", "patch"),
+            help="penalty: κ(α)(U − u) solved with the diffusion, forces independent of dt; patch: the "
+                 "paper's α-weighted patch after each solve (forces depend on ν dt/h², docs/coupling.md)"),
+        Key("penalty_strength", "float", 35.0, ">0",
+            help="s in the penalty rate κ = s α/(1 − α) ν/h² of a cell with volume fraction α"),
         Key("update", "str", "implicit", choices=("implicit", "explicit"),
             help="implicit: stable for light particles (measured to ρp/ρf = 0.3); explicit: the paper's, "
                  "rings below ρp/ρf ≈ 0.5–1.2 (docs/coupling.md)"),

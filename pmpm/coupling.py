@@ -59,15 +59,20 @@ class Coupling:
     mesh : pmpm.mesh.Mesh
     section : the case's [coupling] section (mode, volume_fraction, subcell_points, update)
     fluid_density : ρ_f (kg/m³)
+    viscosity : μ (Pa s)
     """
 
-    def __init__(self, mesh, section, fluid_density: float):
+    def __init__(self, mesh, section, fluid_density: float, viscosity: float):
         self.mesh, self.comm = mesh, mesh.comm
         self.rho = float(fluid_density)
         self.two_way = section.mode == "two-way"
         self.rule = section.volume_fraction
         self.k = int(section.subcell_points)
         self.explicit = section.update == "explicit"
+        self.penalty = section.forcing == "penalty"
+        self.penalty_strength = float(section.penalty_strength)
+        self.nu = float(viscosity) / self.rho
+        self.h2 = mesh.cell_volume[:mesh.n_owned_cells] ** (2 / 3)
         n_owned = mesh.n_owned_cells
         owned_vertices = mesh.cell_vertices[:n_owned]
         self.vertices_per_cell = owned_vertices.shape[1]
@@ -144,7 +149,137 @@ class Coupling:
         total = np.bincount(touched.cell, touched.alpha, minlength=self.mesh.n_owned_cells)
         return np.minimum(total, 1.0)
 
-    # -- 2. exchange: drag, torque, the particle update and the patch ---------------------------
+    # -- 2a. the penalty (the default forcing) ------------------------------------------------
+    def penalty_rates(self, touched: Touched) -> np.ndarray:
+        """κ (1/s) of each (particle, cell) pair: the cell's rate κ(α) = s α/(1 − α) ν/h² with α the
+        cell's total volume fraction, shared among the particles in it by their α."""
+        total = np.bincount(touched.cell, touched.alpha, minlength=self.mesh.n_owned_cells)[touched.cell]
+        covered = np.minimum(total, 1.0)
+        strength = np.minimum(self.penalty_strength * covered / np.maximum(1.0 - covered, 0.0 + 1e-300),
+                              PENALTY_CAP)
+        return strength * self.nu / self.h2[touched.cell] * touched.alpha / np.maximum(total, 1e-300)
+
+    def penalty_terms(self, state: ParticleState, touched: Touched):
+        """Local. (V κ, V κ U) per owned cell for the next momentum solve, U the rigid motion of the
+        current guess of the particles' new velocities (zero in one-way mode: the fluid is not forced)."""
+        n_owned = self.mesh.n_owned_cells
+        diagonal, target = np.zeros(n_owned), np.zeros((n_owned, 3))
+        if not self.two_way or len(touched.cell) == 0:
+            return diagonal, target
+        self.start_passes(state)
+        p, c = touched.particle, touched.cell
+        weight = self.mesh.cell_volume[c] * self.penalty_rates(touched)
+        rigid = self.patched_v[p] + np.cross(self.patched_omega[p], self.mesh.cell_center[c] - state.x[p])
+        diagonal += np.bincount(c, weight, minlength=n_owned)
+        for d in range(3):
+            target[:, d] = np.bincount(c, weight * rigid[:, d], minlength=n_owned)
+        return diagonal, target
+
+    def start_passes(self, state: ParticleState) -> None:
+        """The first pass of a step starts from the particles' velocities at the step's start."""
+        if self.pending is None or len(self.pending) != len(state):
+            self.pending = np.zeros((len(state), 6))
+            self.patched_v, self.patched_omega = state.v, state.omega
+
+    def begin_step(self, state: ParticleState, touched: Touched, u: np.ndarray) -> None:
+        """Collective (penalty forcing). The momentum of the fluid under each particle at the step's
+        start, Σ α ρ V u (and its moment about the centre), against which the step's change is measured."""
+        self.pending = None
+        self.start_passes(state)
+        if self.penalty:
+            self.internal_start = self.internal_momentum(state, touched, u)
+
+    def internal_momentum(self, state, touched, u) -> np.ndarray:
+        """Collective. (n, 6): Σ α ρ V u and Σ α ρ V r × u over the cells under each particle."""
+        p, c = touched.particle, touched.cell
+        mass = self.rho * self.shared_alpha(touched) * self.mesh.cell_volume[c]
+        r = self.mesh.cell_center[c] - state.x[p]
+        return self.particle_sums(len(state), p, r, mass, mass[:, None] * u[c])[2][0]
+
+    def penalty_exchange(self, state, touched, u, dt, external_force, external_torque, last, step, time):
+        """Collective. The particles' share of a penalized step.
+
+        The hydrodynamic impulse on a particle is what the penalty took from the fluid, J = Σ ρ V κ dt
+        (u − U), plus the change of momentum of the fluid under the particle, ΔP = Σ α ρ V Δu (the
+        force on that fluid's surface is the force on the particle's; without ΔP the fluid inside would
+        add ρ_f V to the particle's inertia). Each pass before the projection makes a new guess,
+
+            (m + M_v) V_next = m Vⁿ + dt F_ext + J + ΔP + M_v V_guess,     M_v = ρ_f V_p,
+
+        (ω likewise with I_v = 2/5 M_v R²): particle and fluid solved together, damped by a virtual
+        mass of the displaced fluid so that light particles converge instead of ringing; at
+        convergence it is m ΔV = dt F_ext + J + ΔP. After the projection (``last``) ΔP includes its
+        pressure; particles with m ≥ M_v then take exactly J + ΔP (momentum conserved), lighter
+        ones keep the damped update (``update = "explicit"``: always exactly, and every pass
+        penalizes the step's first motion, as the paper's single patch does).
+        """
+        n = len(state)
+        p, c = touched.particle, touched.cell
+        r = self.mesh.cell_center[c] - state.x[p]
+        m, inertia, free = state.mass, state.inertia, state.movable
+        virtual = self.rho * state.volume
+        virtual_spin = 0.4 * virtual * state.radius ** 2
+        alpha_mass = self.rho * self.shared_alpha(touched) * self.mesh.cell_volume[c]
+        if not last:
+            kappa = self.penalty_rates(touched)
+            rigid = self.patched_v[p] + np.cross(self.patched_omega[p], r)
+            volume = self.rho * self.mesh.cell_volume[c]
+            # two-way: u holds the penalty already (implicit); one-way: the fluid is not forced, and
+            # the particle takes what a local implicit penalty would exchange
+            kappa_cell = np.bincount(c, kappa, minlength=self.mesh.n_owned_cells)[c]
+            rate = kappa * dt if self.two_way else kappa * dt / (1.0 + kappa_cell * dt)
+            # how much J falls when the particle speeds up, from each cell's own response: an upper
+            # bound (diffusion to the neighbours, and ΔP, lower it), so the passes converge monotonically
+            response = volume * kappa * dt / (1.0 + kappa_cell * dt)
+            self.response, self.response_spin, (exchanged, internal) = self.particle_sums(
+                n, p, r, response, (volume * rate)[:, None] * (u[c] - rigid), alpha_mass[:, None] * u[c])
+            self.exchanged = exchanged                         # J of this pass's solve
+            self.pending[:] = exchanged + internal - self.internal_start   # J + ΔP
+            self.solved_v, self.solved_omega = self.patched_v, self.patched_omega
+            if self.explicit:
+                return None
+            impulse, damping, damping_spin = self.pending, self.response, self.response_spin
+            v = (m[:, None] * state.v + dt * external_force + impulse[:, :3]
+                 + damping[:, None] * self.solved_v) / (m + damping)[:, None]
+            omega = (inertia[:, None] * state.omega + dt * external_torque + impulse[:, 3:]
+                     + damping_spin[:, None] * self.solved_omega) / (inertia + damping_spin)[:, None]
+            self.patched_v = np.where(free[:, None], v, state.v)
+            self.patched_omega = np.where(free[:, None], omega, state.omega)
+            return None
+        # after the projection: J of the last solve, ΔP with the projected velocities
+        impulse = self.exchanged + self.internal_momentum(state, touched, u) - self.internal_start
+        momentum, angular = impulse[:, :3], impulse[:, 3:]
+        exact = np.full(n, self.explicit) | (m >= virtual)
+        exact_spin = np.full(n, self.explicit) | (inertia >= virtual_spin)
+        damping = np.where(exact, 0.0, self.response)
+        damping_spin = np.where(exact_spin, 0.0, self.response_spin)
+        dv = (dt * external_force + momentum + damping[:, None] * (self.solved_v - state.v)) / (m + damping)[:, None]
+        dw = (dt * external_torque + angular + damping_spin[:, None] * (self.solved_omega - state.omega)
+              ) / (inertia + damping_spin)[:, None]
+        self.pending = None
+        force = np.where(free[:, None], m[:, None] * dv / dt - external_force, momentum / dt)
+        torque = np.where(free[:, None], inertia[:, None] * dw / dt - external_torque, angular / dt)
+        if self.explicit:
+            self.watch_ringing(state, np.where(free[:, None], dv, 0.0), step, time)
+        return force, torque
+
+    def particle_sums(self, n, p, r, mass, *momenta):
+        """Collective. Per particle, summed over all ranks in one Allreduce: the ``mass`` of its pairs,
+        that mass's moment of inertia about the centre (isotropic share, 2/3 |r|²), and for each
+        per-pair momentum vector its sum and its moment r × it (n, 6)."""
+        sums = np.zeros((n, 2 + 6 * len(momenta)))
+        sums[:, 0] = np.bincount(p, mass, minlength=n)
+        sums[:, 1] = np.bincount(p, mass * (2.0 / 3.0) * np.einsum("ij,ij->i", r, r), minlength=n)
+        for i, momentum in enumerate(momenta):
+            spin = np.cross(r, momentum)
+            for d in range(3):
+                sums[:, 2 + 6 * i + d] = np.bincount(p, momentum[:, d], minlength=n)
+                sums[:, 5 + 6 * i + d] = np.bincount(p, spin[:, d], minlength=n)
+        if self.comm.size > 1:
+            self.comm.Allreduce(MPI.IN_PLACE, sums, op=MPI.SUM)
+        return sums[:, 0], sums[:, 1], [sums[:, 2 + 6 * i: 8 + 6 * i] for i in range(len(momenta))]
+
+    # -- 2b. exchange: drag, torque, the particle update and the patch ---------------------------
     def exchange(self, state: ParticleState, touched: Touched, u: np.ndarray, dt: float,
                  external_force: np.ndarray, external_torque: np.ndarray, last: bool = True,
                  step: int = 0, time: float = 0.0):
@@ -162,6 +297,8 @@ class Coupling:
         force, torque : (n, 3) hydrodynamic force (N) and torque (N m) on each particle, such that
             m (Vⁿ⁺¹ − Vⁿ) = dt (force + external_force) for free particles; None before the last pass.
         """
+        if self.penalty:
+            return self.penalty_exchange(state, touched, u, dt, external_force, external_torque, last, step, time)
         n = len(state)
         mesh = self.mesh
         p, c = touched.particle, touched.cell
@@ -170,23 +307,10 @@ class Coupling:
         mass = self.rho * alpha * mesh.cell_volume[c]
         # the velocities patched by the last pass (this step's start for the first): the deviation
         # from them is the momentum this pass exchanges
-        if self.pending is None or len(self.pending) != n:
-            self.pending = np.zeros((n, 6))
-            self.patched_v, self.patched_omega = state.v, state.omega
+        self.start_passes(state)
         rigid = self.patched_v[p] + np.cross(self.patched_omega[p], r)
-        deviation = mass[:, None] * (u[c] - rigid)
-        sums = np.zeros((n, 8))
-        sums[:, 0] = np.bincount(p, mass, minlength=n)
-        for d in range(3):
-            sums[:, 1 + d] = np.bincount(p, deviation[:, d], minlength=n)
-        spin = np.cross(r, deviation)
-        for d in range(3):
-            sums[:, 4 + d] = np.bincount(p, spin[:, d], minlength=n)
-        sums[:, 7] = np.bincount(p, mass * (2.0 / 3.0) * np.einsum("ij,ij->i", r, r), minlength=n)
-        if self.comm.size > 1:
-            self.comm.Allreduce(MPI.IN_PLACE, sums, op=MPI.SUM)
-        self.pending += sums[:, 1:7]
-        covered, moment = sums[:, 0], sums[:, 7]
+        covered, moment, (deviation,) = self.particle_sums(n, p, r, mass, mass[:, None] * (u[c] - rigid))
+        self.pending += deviation
         momentum, angular = self.pending[:, :3], self.pending[:, 3:]
 
         # the particle update from all the momentum exchanged so far, every pass: the next pass then
@@ -221,8 +345,10 @@ class Coupling:
         """Local (owned rows of ``u``). Particles new to the flow (present at the start, or just
         injected): the fluid they cover is the solver's, not the user's, so it starts moving with
         them. Otherwise a particle released at speed into still fluid would spend its first step
-        accelerating its own volume of fluid (a ρp/ρf = 2 sphere lost half its momentum so)."""
-        if not self.two_way:
+        accelerating its own volume of fluid (a ρp/ρf = 2 sphere lost half its momentum so).
+        The penalty forcing needs none of this: its impulse leaves out the fluid under the particle
+        (ΔP in ``penalty_exchange``), so that fluid's start from rest costs the particle nothing."""
+        if not self.two_way or self.penalty:
             return
         pick = fresh[touched.particle]
         p, c, alpha = touched.particle[pick], touched.cell[pick], self.shared_alpha(touched)[pick]
@@ -254,6 +380,9 @@ class Coupling:
                 f"{state.density[i] / self.rho:.3g}) rings: its velocity change flips sign and grows every "
                 "step, the explicit coupling instability of light particles; use [coupling] update = "
                 "\"implicit\" (the default), or a smaller [run] dt")
+
+
+PENALTY_CAP = 1e3   # κ h²/ν of a cell wholly inside a particle: rigid to 1e-4 of its neighbours' pull
 
 
 def reference_samples(cell_type: str, k: int) -> np.ndarray:

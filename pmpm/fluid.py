@@ -74,6 +74,7 @@ class FlowSolver:
         self.pressure = PressureSolver(mesh, coefficient, dirichlet, rtol=fluid.pressure_rtol)
         self._momentum_dt = None
         self.momentum = []
+        self._penalized = False      # a particle penalty is on the momentum matrices' diagonals
         self.last_pressure_iterations = 0
 
     # -- set-up -------------------------------------------------------------------------------------
@@ -170,7 +171,23 @@ class FlowSolver:
             self.momentum.append(CellKSP(self.mesh, matrix, "momentum_", "cg", "jacobi", 1e-8, "momentum",
                                          atol=atol))
         self._momentum_dt = dt
+        self._penalized = False
         return self.momentum
+
+    def _penalize(self, solvers, rhs, penalty):
+        """The right-hand side of one momentum solve, with the particles' implicit penalty on the
+        matrices' diagonals and in the right-hand side (or, without it, the matrices restored)."""
+        if penalty is None and not self._penalized:
+            return rhs
+        diagonal, target = penalty() if penalty is not None else (np.zeros(self.n_owned), None)
+        for solver in {id(s): s for s in solvers}.values():   # the components may share one matrix
+            solver.add_to_diagonal(diagonal)
+        self._penalized = penalty is not None
+        if target is None:
+            return rhs
+        rhs = rhs.copy()
+        rhs[:self.n_owned] += target
+        return rhs
 
     # -- discrete operators ------------------------------------------------------------------------
     def interpolate(self, values):
@@ -232,12 +249,14 @@ class FlowSolver:
 
     # -- the step --------------------------------------------------------------------------------
     def step(self, state: FluidState, dt: float, source=None, patch=None, forcing_iterations: int = 1,
-             step: int = 0, time: float = 0.0) -> dict:
+             step: int = 0, time: float = 0.0, penalty=None) -> dict:
         """Collective. Advance ``state`` in place by dt. ``source``: momentum source (n_local, 3) in
         m⁴/s² (force/ρ integrated over the cell), or None. ``patch(u_star, last)``: called (collectively)
         with the predicted velocity, which it may change in its owned rows, ``forcing_iterations``
         times before the projection (``last`` false), then once after it (``last`` true).
-        Returns diagnostics."""
+        ``penalty()``: called before each of those momentum solves; returns (V κ (n_owned,),
+        V κ U (n_owned, 3)) of an implicit penalty κ (U − u) (the particles, ``pmpm.coupling``),
+        solved together with the diffusion. Returns diagnostics."""
         rho, nu, V = self.rho, self.nu, self.volume
         u, p, flux = state.u, state.p, state.flux
         momentum_solvers = self._momentum_solvers(dt)  # (re)assembled before the step's temporaries exist
@@ -270,9 +289,10 @@ class FlowSolver:
         u_star = u.copy()
         passes = forcing_iterations if patch is not None else 1
         for forcing_pass in range(passes):
+            rhs_pass = self._penalize(momentum_solvers, rhs, penalty)
             for k, solver in enumerate(momentum_solvers):
                 column = np.ascontiguousarray(u_star[:, k])
-                solver.solve(rhs[:, k], column, step, time)
+                solver.solve(rhs_pass[:, k], column, step, time)
                 u_star[:, k] = column
             if patch is not None:  # the particles' direct forcing, before the projection (pmpm.coupling)
                 before = u_star[:self.n_owned].copy()

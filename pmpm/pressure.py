@@ -139,6 +139,18 @@ class CellKSP:
         self.ksp = ksp
         self.iterations = 0  # of the last solve
         self.total_iterations = 0
+        self._base_diagonal = None   # the matrix's own diagonal, kept while an addition is in place
+
+    def add_to_diagonal(self, extra: np.ndarray) -> None:
+        """Collective. Set the diagonal to the assembled one plus ``extra`` (n_owned,), replacing any
+        earlier addition (the particles' penalty, which changes every step). PETSc sees the matrix
+        state change, so the preconditioner is set up again at the next solve."""
+        if self._base_diagonal is None:
+            self._base_diagonal = self.matrix.getDiagonal().getArray().copy()
+        diagonal = PETSc.Vec().createWithArray(self._base_diagonal + extra[:self.n_owned],
+                                               size=(self.n_owned, self.mesh.n_global_cells), comm=self.comm)
+        self.matrix.setDiagonal(diagonal, addv=PETSc.InsertMode.INSERT_VALUES)
+        diagonal.destroy()
 
     def _written(self) -> None:
         """Tell PETSc that the numpy arrays under b and x were written: PETSc caches a vector's norm

@@ -131,7 +131,7 @@ class Simulation:
             self.fluid_density = case.fluid.density
             self.flow = FlowSolver(mesh, case.fluid, case.boundaries)
             self.fluid_state = self.flow.initial_state()
-            self.coupling = Coupling(mesh, case.coupling, case.fluid.density)
+            self.coupling = Coupling(mesh, case.coupling, case.fluid.density, case.fluid.viscosity)
             self.volume_fraction = np.zeros(mesh.n_local_cells)
             self.flow_knows_id = -1   # particles with larger ids have not been in the flow yet
             self.cfl_warned = False
@@ -268,6 +268,8 @@ class Simulation:
                 coupling.carry_fluid(state, touched, self.fluid_state.u, fresh)
                 self.mesh.update_ghosts(self.fluid_state.u)
                 self.flow_knows_id = int(state.id.max())
+            if len(state):
+                coupling.begin_step(state, touched, self.fluid_state.u)
         hydro = {}
 
         def patch(u_star, last):
@@ -276,10 +278,15 @@ class Simulation:
                 if last:
                     hydro["force"], hydro["torque"] = result
 
+        def penalty():
+            with Timer(self.times, "coupling"):
+                return coupling.penalty_terms(state, touched)
+
         with Timer(self.times, "flow"):
             info = self.flow.step(self.fluid_state, dt, patch=patch if len(state) else None,
                                   forcing_iterations=self.case.coupling.forcing_passes,
-                                  step=self.step, time=self.time)
+                                  step=self.step, time=self.time,
+                                  penalty=penalty if len(state) and coupling.penalty else None)
         self.pressure_iterations = getattr(self, "pressure_iterations", 0) + info["pressure_iterations"]
         self.volume_fraction[:self.mesh.n_owned_cells] = coupling.volume_fraction(touched)
         self.flow.check(self.fluid_state, self.step, self.time)

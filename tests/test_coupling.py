@@ -25,6 +25,8 @@ pressure_rtol = 1e-10
 volume_fraction = "{rule}"
 update = "{update}"
 forcing_passes = {passes}
+forcing = "{forcing}"
+penalty_strength = {strength}
 [[particles.add]]
 position = {position}
 velocity = {velocity}
@@ -36,7 +38,8 @@ motion = "{motion}"
 """
 DEFAULTS = dict(end_time=0.1, dt=0.01, gravity="[0.0, 0.0, 0.0]", L=0.08, H=0.08, n=16, m=16, rho_f=1000.0,
                 mu=1.0, rule="subcell", update="implicit", position="[0.04, 0.04, 0.04]",
-                velocity="[0.0, 0.0, 0.0]", omega="[0.0, 0.0, 0.0]", radius=0.01, rho_p=1000.0, motion="free", extra="", passes=3)
+                velocity="[0.0, 0.0, 0.0]", omega="[0.0, 0.0, 0.0]", radius=0.01, rho_p=1000.0, motion="free", extra="", passes=3,
+                forcing="penalty", strength=35.0)
 
 
 def simulation(comm, tmp_path, **values):
@@ -65,8 +68,9 @@ def test_covered_volume_is_the_sphere_volume(tmp_path, rule, tolerance):
 
 
 def test_exchange_is_newtons_third_law(tmp_path):
-    """For a fixed sphere, the momentum the patch takes from the fluid is force × dt exactly."""
-    sim = simulation(MPI.COMM_SELF, tmp_path, motion="fixed")
+    """For a fixed sphere, the momentum the paper's patch takes from the fluid is force × dt exactly.
+    (The penalty's exchange is a term of the momentum equation: test_momentum_of_fluid_and_particle_is_conserved.)"""
+    sim = simulation(MPI.COMM_SELF, tmp_path, motion="fixed", forcing="patch")
     rng = np.random.default_rng(1)
     u = rng.normal(size=(sim.mesh.n_local_cells, 3))
     before = u.copy()
@@ -109,7 +113,7 @@ def test_light_particle_explicit_rings_implicit_is_stable(tmp_path):
     the implicit update (default) rises smoothly, also at ρ_p/ρ_f = 0.5."""
     light = dict(gravity="[0.0, 0.0, -9.81]", dt=0.002, n=12, m=24, H=0.16, mu=0.05,
                  position="[0.04, 0.04, 0.05]")
-    sim = simulation(MPI.COMM_SELF, tmp_path, rho_p=300.0, update="explicit", **light)
+    sim = simulation(MPI.COMM_SELF, tmp_path, rho_p=300.0, update="explicit", forcing="patch", **light)
     with pytest.raises(NumericalError, match="rings.*update = \"implicit\""):
         advance(sim, 60)
     for ratio in (0.3, 0.5):
@@ -152,7 +156,7 @@ def test_crossing_the_rank_boundary_same_trajectory(comm, tmp_path):
 
 
 def stokes_run(comm, tmp_path, cells_per_diameter, rule, steps, box_radii=6.0, diffusion_number=0.1,
-               forcing_passes=3):
+               forcing_passes=3, **values):
     """A fixed sphere in the exact Stokes flow: every boundary face and the initial field carry the
     analytic solution, so the box needs no wall correction. Returns drag / 6πμaU."""
     from pmpm.reference import stokes_drag, stokes_velocity
@@ -164,7 +168,7 @@ def stokes_run(comm, tmp_path, cells_per_diameter, rule, steps, box_radii=6.0, d
     centre = n * h / 2 + np.array([0.13, -0.21, 0.07]) * h      # off the lattice
     sim = simulation(comm, tmp_path, L=n * h, H=n * h, n=n, m=n, mu=mu, rho_f=rho, rule=rule, motion="fixed",
                      radius=a, position=f"[{centre[0]}, {centre[1]}, {centre[2]}]",
-                     dt=diffusion_number * h * h * rho / mu, extra=walls, passes=forcing_passes)
+                     dt=diffusion_number * h * h * rho / mu, extra=walls, passes=forcing_passes, **values)
     flow, far = sim.flow, np.array([0.0, 0.0, speed])
     flow.u_fixed[:] = stokes_velocity(flow.xf_b, centre, a, far)
     flow.flux_fixed[:] = np.einsum("ij,ij->i", flow.u_fixed, flow.S_b)
@@ -214,30 +218,41 @@ def settling_run(comm, tmp_path, cells_per_diameter, rule="subcell", lateral_dia
 
 
 
-def test_momentum_of_fluid_and_particle_is_conserved(tmp_path):
+@pytest.mark.parametrize("forcing, physical_bound", [("patch", 1e-2), ("penalty", 6e-2)])
+def test_momentum_of_fluid_and_particle_is_conserved(tmp_path, request, forcing, physical_bound):
     """No wall, inlet or gravity: a spinning sphere (ρp/ρf = 2) launched through still fluid in a
     box whose faces are all open (outlets at p = 0: no pressure or viscous force on them). The
     momentum of the fluid outside the particle plus the particle's stays what it was, less what
     convection carries out through the open faces.
 
-    The fluid inside a particle is the solver's, not the user's: the patch moves it rigidly with
-    the particle, so its momentum Σ α ρ V (V + ω × r) is not counted. The scheme conserves
-    momentum exactly (round-off) once one more term is counted: the change of that internal
-    momentum when the sphere moves onto new cells (the covered mass changes by a few 1e-4 of M
-    from step to step with sub-cell sampling). Physically, that term is the conservation error."""
+    The fluid inside a particle is the solver's, not the user's, so its momentum is not counted:
+    Σ α ρ V (V + ω × r) for the paper's patch, which moves it rigidly with the particle, and the
+    measured Σ α ρ V u for the penalty, whose impulse on the particle includes that fluid's change.
+    Either scheme conserves momentum exactly (round-off; the penalty's rows are stiff, so its
+    momentum solves run at rtol 1e-13 here) once one more term is counted: the change of that
+    internal momentum when the sphere moves onto new cells. Physically, that term is the
+    conservation error: under 1 % for the patch; 4.7 % for the penalty, whose cut cells lag the
+    rigid motion as the sphere decelerates (the fluid they hold moves on unaccounted)."""
+    from petsc4py import PETSc
     sides = ("xmin", "xmax", "ymin", "ymax", "zmin", "zmax")
     open_faces = "".join(f'[boundary.{b}]\ntype = "outlet"\n' for b in sides)
+    if forcing == "penalty":   # read when the momentum solvers are made, at the first step
+        PETSc.Options().setValue("momentum_ksp_rtol", 1e-13)
+        request.addfinalizer(lambda: PETSc.Options().delValue("momentum_ksp_rtol"))
     sim = simulation(MPI.COMM_SELF, tmp_path, mu=0.1, rho_p=2000.0, velocity="[0.02, 0.01, 0.0]",
-                     omega="[0.0, 0.0, 3.0]", position="[0.0381, 0.0407, 0.0399]", extra=open_faces)
+                     omega="[0.0, 0.0, 3.0]", position="[0.0381, 0.0407, 0.0399]", extra=open_faces,
+                     forcing=forcing)
     flow, coupling, state, mesh = sim.flow, sim.coupling, sim.particles, sim.mesh
     owned = slice(0, mesh.n_owned_cells)
     dt = sim.case.run.dt
 
     def internal_momentum(touched, x):
-        """Σ α ρ V (V + ω × r) of the cells ``touched``, the particle at x: the fluid the patch moves with it."""
+        """The fluid under the particle at x, in the cells ``touched``."""
         p, c = touched.particle, touched.cell
-        mass = flow.rho * touched.alpha * mesh.cell_volume[c]
-        return (mass[:, None] * (state.v[p] + np.cross(state.omega[p], mesh.cell_center[c] - x[p]))).sum(axis=0)
+        mass = flow.rho * coupling.shared_alpha(touched) * mesh.cell_volume[c]
+        if forcing == "patch":
+            return (mass[:, None] * (state.v[p] + np.cross(state.omega[p], mesh.cell_center[c] - x[p]))).sum(axis=0)
+        return (mass[:, None] * sim.fluid_state.u[c]).sum(axis=0)
 
     start = state.mass[0] * state.v[0]
     scale = np.linalg.norm(start)
@@ -261,8 +276,8 @@ def test_momentum_of_fluid_and_particle_is_conserved(tmp_path):
           f"physical ≤ {physical:.1e}, with the coverage changes counted ≤ {discrete:.1e}; "
           f"carried out {np.linalg.norm(carried_out) / scale:.1e}")
     assert lost > 0.5              # the fluid took most of the particle's momentum ...
-    assert discrete < 1e-9         # ... the scheme kept all of it (momentum solves at rtol 1e-8 of V u/dt)
-    assert physical < 1e-2         # ... and the moving coverage lost under 1 % of it
+    assert discrete < 1e-9         # ... the scheme kept all of it 
+    assert physical < physical_bound  # ... and the moving coverage lost little of it
 
 
 @pytest.mark.parametrize("ratio", [0.8, 0.5])
