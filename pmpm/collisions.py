@@ -36,6 +36,7 @@ from scipy.sparse.linalg import spsolve
 from scipy.spatial import cKDTree
 
 from .errors import CaseError
+from .gauss_seidel import projected_gauss_seidel
 from .particles import FIXED, FREE, ParticleState
 
 DEFAULT_RESTITUTION, DEFAULT_FRICTION, DEFAULT_ROLLING_FRICTION = 0.9, 0.3, 0.0
@@ -711,8 +712,8 @@ class EventLoop:
         rebounds so that its end-of-step separation is the one of the event solution,
         e (u dt − g) (target e u − (1 + e) g / dt), a slower one closes its gap but not more
         (−g / dt), an overlap opens at 0.2 overlap / dt. Impulses: normal >= 0, tangential in the
-        Coulomb cone; projected Gauss–Seidel over the contacts, vectorised by colouring them so
-        that no two contacts of a colour share a free particle, warm-started from the impulses
+        Coulomb cone; projected Gauss–Seidel over the contacts one at a time (compiled:
+        ``pmpm.gauss_seidel``), at most ``dense_sweeps`` sweeps, warm-started from the impulses
         of the previous step (by particle ids). Then everything flies to the end of the step."""
         state, n, s = self.state, len(self.state), self.settings
         c = unique_wall_contacts(c)
@@ -731,18 +732,14 @@ class EventLoop:
         bounce = np.where(closing > s.rest_speed, e, 0.0)
         target = np.maximum(np.where(gap > 0, -gap / dt, -0.2 * gap / dt),
                             bounce * closing - (1 + bounce) * np.maximum(gap, 0.0) / dt)
-        k_n = inv_m[i] + inv_m[j]
-        k_t = k_n + inv_i[i] * (arm_i * arm_i).sum(1) + inv_i[j] * (arm_j * arm_j).sum(1)
-        # colours: contacts of one colour share no free particle
-        free = inv_m > 0
-        order, bounds = colour_contacts(i, j, free)
-        i, j, normal, arm_i, arm_j, u_wall, mu, target, k_n, k_t, gap, closing = (
-            a[order] for a in (i, j, normal, arm_i, arm_j, u_wall, mu, target, k_n, k_t, gap, closing))
+        # the sweep order: by first particle (rows follow the ids, so the order does not depend on
+        # the tree search), then by the other particle, walls last
+        order = np.lexsort((c["k"], j, i))
+        i, j, normal, arm_i, arm_j, u_wall, mu, target, gap, closing = (
+            a[order] for a in (i, j, normal, arm_i, arm_j, u_wall, mu, target, gap, closing))
         c = {key: value[order] for key, value in c.items()}
-        # spheres: the arms are −r_i n and r_j n, so ω × arm and arm × J are ∓r (ω × n), ∓r (n × J)
-        r_i = np.sqrt((arm_i * arm_i).sum(1))
+        r_i = np.sqrt((arm_i * arm_i).sum(1))  # spheres: the arms are −r_i n and r_j n
         r_j = np.sqrt((arm_j * arm_j).sum(1))
-        VW = np.hstack([V, W])  # (n + 1, 6): one gather and one scatter per body and colour
         lam_n, lam_t = self.warm_start(c)
         if lam_n.any():  # the previous step's impulses, projected on today's normals and cones
             lam_n = np.maximum(lam_n, 0.0)
@@ -751,45 +748,15 @@ class EventLoop:
             lam_t *= np.minimum(1.0, mu * lam_n / np.maximum(size, 1e-300))[:, None]
             J = lam_n[:, None] * normal + lam_t
             nJ = cross(normal, J)
-            VW[:, :3] += bincount3(i, J * inv_m[i, None], n + 1) - bincount3(j, J * inv_m[j, None], n + 1)
-            VW[:, 3:] -= (bincount3(i, nJ * (inv_i[i] * r_i)[:, None], n + 1)
-                          + bincount3(j, nJ * (inv_i[j] * r_j)[:, None], n + 1))
+            V += bincount3(i, J * inv_m[i, None], n + 1) - bincount3(j, J * inv_m[j, None], n + 1)
+            W -= (bincount3(i, nJ * (inv_i[i] * r_i)[:, None], n + 1)
+                  + bincount3(j, nJ * (inv_i[j] * r_j)[:, None], n + 1))
         tol = DENSE_TOL * s.rest_speed if s.rest_speed > 0 else 1e-9 * (np.abs(closing).max() + 1e-300)
-        groups = []
-        for lo, hi in zip(bounds[:-1], bounds[1:]):
-            g = slice(lo, hi)
-            a, b = i[g], j[g]
-            groups.append((g, np.concatenate([a, b]), hi - lo, normal[g], r_i[g, None], r_j[g, None], u_wall[g],
-                           target[g], 1.0 / k_n[g], 1.0 / k_t[g, None], mu[g],
-                           np.concatenate([inv_m[a], -inv_m[b]])[:, None],
-                           -np.concatenate([inv_i[a] * r_i[g], inv_i[b] * r_j[g]])[:, None], float(k_n[g].max())))
-        sweeps = 0
         # without the previous step's impulses (the first dense step, a restart) a bed starts from
         # nothing: let the sweeps build its contact forces up once
         budget = s.dense_sweeps if getattr(state, "_dense_memory", None) is not None else COLD_SWEEPS * s.dense_sweeps
-        for sweeps in range(1, budget + 1):
-            largest = 0.0
-            for g, ab, k, nrm, ra, rb, uw, goal, kn, kt, mu_g, lin, ang, w_n in groups:
-                AB = VW[ab]
-                A, B = AB[:k], AB[k:]
-                u = A[:, :3] - B[:, :3] - uw - cross(ra * A[:, 3:] + rb * B[:, 3:], nrm)
-                u_n = (u * nrm).sum(1)
-                old_n = lam_n[g]
-                new_n = np.maximum(old_n + (goal - u_n) * kn, 0.0)
-                old_t = lam_t[g]
-                trial = old_t - (u - u_n[:, None] * nrm) * kt
-                size = np.sqrt((trial * trial).sum(1))
-                trial *= np.minimum(1.0, mu_g * new_n / np.maximum(size, 1e-300))[:, None]
-                J = (new_n - old_n)[:, None] * nrm + (trial - old_t)
-                lam_n[g], lam_t[g] = new_n, trial
-                J2 = np.vstack([J, J])
-                AB[:, :3] += lin * J2
-                AB[:, 3:] += ang * cross(np.vstack([nrm, nrm]), J2)
-                VW[ab] = AB
-                largest = max(largest, float(np.abs(J).max()) * w_n)
-            if largest <= tol:
-                break
-        V, W = VW[:, :3], VW[:, 3:]
+        sweeps = projected_gauss_seidel(i, j, normal, r_i, r_j, u_wall, target, mu, inv_m, inv_i, V, W,
+                                        lam_n, lam_t, budget, tol)
         self.v[:] = V[:n]
         state.omega[:] = W[:n]
         self.remember(c, lam_n, lam_t)
@@ -1138,55 +1105,18 @@ class ContactSet:
         return np.sqrt((lam_t * lam_t).sum(1)) < mu * lam_n * (1 - 1e-9)
 
     def gauss_seidel(self, rows, target, sweeps, tol) -> np.ndarray:
-        """Coupled contacts with friction: projected Gauss–Seidel sweeps over the contacts (one at
-        a time: normal impulse clamped to >= 0, tangential to the Coulomb cone, both on the
-        impulses accumulated so far, so a prior normal solve is the warm start). Each update
-        only removes energy. Returns the sticking flags."""
-        i, j = self.i[rows].tolist(), self.j[rows].tolist()
-        normal, arm_i, arm_j = self.normal[rows].tolist(), self.arm_i[rows].tolist(), self.arm_j[rows].tolist()
-        u_wall, mu, goal = self.u_wall[rows].tolist(), self.mu[rows].tolist(), np.asarray(target, float).tolist()
-        inv_m, inv_i = self.inv_m.tolist(), self.inv_i.tolist()
-        V, W = self.v.tolist(), self.w.tolist()
-        lam_n, lam_t = self.lam_n[rows].tolist(), self.lam_t[rows].tolist()
-        k_n = [inv_m[a] + inv_m[b] for a, b in zip(i, j)]
-        k_t = [inv_m[a] + inv_i[a] * (p[0] ** 2 + p[1] ** 2 + p[2] ** 2)
-               + inv_m[b] + inv_i[b] * (q[0] ** 2 + q[1] ** 2 + q[2] ** 2)
-               for a, b, p, q in zip(i, j, arm_i, arm_j)]
-        for _ in range(sweeps):
-            largest = 0.0
-            for c in range(len(i)):
-                a, b, n, p, q = i[c], j[c], normal[c], arm_i[c], arm_j[c]
-                va, wa, vb, wb, uw = V[a], W[a], V[b], W[b], u_wall[c]
-                u = [va[0] + wa[1] * p[2] - wa[2] * p[1] - vb[0] - (wb[1] * q[2] - wb[2] * q[1]) - uw[0],
-                     va[1] + wa[2] * p[0] - wa[0] * p[2] - vb[1] - (wb[2] * q[0] - wb[0] * q[2]) - uw[1],
-                     va[2] + wa[0] * p[1] - wa[1] * p[0] - vb[2] - (wb[0] * q[1] - wb[1] * q[0]) - uw[2]]
-                u_n = u[0] * n[0] + u[1] * n[1] + u[2] * n[2]
-                new_n = max(lam_n[c] + (goal[c] - u_n) / k_n[c], 0.0)
-                d_n = new_n - lam_n[c]
-                lam_n[c] = new_n
-                old = lam_t[c]
-                trial = [old[d] - (u[d] - u_n * n[d]) / k_t[c] for d in range(3)]
-                size = (trial[0] ** 2 + trial[1] ** 2 + trial[2] ** 2) ** 0.5
-                limit = mu[c] * new_n
-                if size > limit:
-                    trial = [t * limit / size for t in trial]
-                lam_t[c] = trial
-                J = [d_n * n[d] + trial[d] - old[d] for d in range(3)]
-                ma, ia, mb, ib = inv_m[a], inv_i[a], inv_m[b], inv_i[b]
-                tq_a = [p[1] * J[2] - p[2] * J[1], p[2] * J[0] - p[0] * J[2], p[0] * J[1] - p[1] * J[0]]
-                tq_b = [q[1] * J[2] - q[2] * J[1], q[2] * J[0] - q[0] * J[2], q[0] * J[1] - q[1] * J[0]]
-                for d in range(3):
-                    va[d] += ma * J[d]
-                    wa[d] += ia * tq_a[d]
-                    vb[d] -= mb * J[d]
-                    wb[d] -= ib * tq_b[d]
-                largest = max(largest, (J[0] ** 2 + J[1] ** 2 + J[2] ** 2) ** 0.5 * (ma + mb))
-            if largest <= tol:
-                break
-        self.v[:], self.w[:] = V, W
+        """Coupled contacts with friction: projected Gauss–Seidel sweeps over the contacts, one at
+        a time (``pmpm.gauss_seidel``), on the impulses accumulated so far (so a prior solve is
+        the warm start), until no contact changes a velocity by more than ``tol`` (m/s). Returns
+        the sticking flags."""
+        lam_n, lam_t = self.lam_n[rows], self.lam_t[rows]  # copies (fancy indexing)
+        r_i = np.sqrt((self.arm_i[rows] ** 2).sum(1))  # spheres: the arms are −r_i n and r_j n
+        r_j = np.sqrt((self.arm_j[rows] ** 2).sum(1))
+        projected_gauss_seidel(self.i[rows], self.j[rows], self.normal[rows], r_i, r_j, self.u_wall[rows], target,
+                               self.mu[rows], self.inv_m, self.inv_i, self.v, self.w, lam_n, lam_t, sweeps, tol)
         self.lam_n[rows], self.lam_t[rows] = lam_n, lam_t
-        size = np.sqrt((self.lam_t[rows] ** 2).sum(1))
-        return size < self.mu[rows] * self.lam_n[rows] * (1 - 1e-9)
+        size = np.sqrt((lam_t * lam_t).sum(1))
+        return size < self.mu[rows] * lam_n * (1 - 1e-9)
 
     def jacobian(self, rows, normal_only=False):
         """Sparse map from the bodies' (v, ω) to the contacts' relative velocities: per contact
@@ -1304,35 +1234,6 @@ class ContactSet:
             self.apply(rows, lam[:, None] * normal)
         return converged
 
-
-
-def colour_contacts(i, j, free) -> tuple[np.ndarray, np.ndarray]:
-    """Order contacts (bodies i, j) into colours, none of which holds two contacts sharing a
-    ``free`` body: returns the permutation and the colours' bounds in it. Rounds of a random
-    priority: a contact joins the colour when it outranks every uncoloured contact of its free
-    bodies (deterministic: the priorities are seeded)."""
-    m = len(i)
-    if m == 0:
-        return np.zeros(0, np.int64), np.zeros(1, np.int64)
-    nb = int(max(i.max(), j.max())) + 1
-    priority = np.random.default_rng(12345).permutation(m)
-    colour = np.full(m, -1)
-    left = np.argsort(priority)  # ascending priority: in a fancy assignment the last (largest) wins
-    count = 0
-    while len(left):
-        a, b, p = i[left], j[left], priority[left]
-        best_a, best_b = np.full(nb, -1), np.full(nb, -1)
-        fa, fb = free[a], free[b]
-        best_a[a[fa]] = p[fa]
-        best_b[b[fb]] = p[fb]
-        best = np.maximum(best_a, best_b)
-        wins = (~fa | (best[a] == p)) & (~fb | (best[b] == p))
-        colour[left[wins]] = count
-        left = left[~wins]
-        count += 1
-    order = np.argsort(colour, kind="stable")
-    bounds = np.searchsorted(colour[order], np.arange(count + 1))
-    return order, bounds
 
 
 def bincount3(index, values, n) -> np.ndarray:
