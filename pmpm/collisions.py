@@ -36,7 +36,7 @@ from scipy.sparse.linalg import spsolve
 from scipy.spatial import cKDTree
 
 from .errors import CaseError
-from .gauss_seidel import projected_gauss_seidel
+from .contact_kernels import closing_pairs, projected_gauss_seidel
 from .particles import FIXED, FREE, ParticleState
 
 DEFAULT_RESTITUTION, DEFAULT_FRICTION, DEFAULT_ROLLING_FRICTION = 0.9, 0.3, 0.0
@@ -523,9 +523,11 @@ class EventLoop:
             self.walls.move_rigid(self.dt)
 
     # -- resting contacts, all at once ------------------------------------------------------------
-    def touching_contacts(self, t, reach=0.0, members=None) -> dict:
+    def touching_contacts(self, t, reach=0.0, members=None, closing_in=None) -> dict:
         """Particle–particle and particle–wall contacts at time t whose gap is at most ``reach``
-        (m) beyond touching, among ``members`` (default: all particles; their clocks at t).
+        (m) beyond touching, among ``members`` (default: all particles; their clocks at t); with
+        ``closing_in`` (s), only those whose gap can close within it at the relative speed of
+        the centres (a wall: of the centre and the wall).
 
         Returns arrays: i, j (j = n for a wall), normal (towards i), arm_i, arm_j (centre to contact
         point), u_wall, mu, mu_r, gap (m), wall (bool), face (bool: a wall contact inside the
@@ -543,6 +545,8 @@ class EventLoop:
             pairs = members[cKDTree(x[members]).query_pairs(span, output_type="ndarray")] if len(members) > 1 \
                 else np.zeros((0, 2), np.int64)
         if len(pairs):
+            if closing_in is not None:  # many candidates, few kept: filter them compiled
+                pairs = pairs[closing_pairs(pairs, x, self.v, r, self.free, reach, closing_in, CONTACT_TOL)]
             i, j = pairs[:, 0], pairs[:, 1]
             dx = x[i] - x[j]
             dist = np.sqrt((dx * dx).sum(1))
@@ -567,10 +571,15 @@ class EventLoop:
                 keep = ((gap <= CONTACT_TOL * r[p] + reach) & (height >= np.where(face, -r[p], 0.0))
                         & (face | (dist > 0)))
                 p, k, q, face, sep, dist, gap, nf, ctr = (arr[keep] for arr in (p, k, q, face, sep, dist, gap, nf, ctr))
+                u_wall = self.walls.surface_velocity(k, q, ctr)
+                if closing_in is not None:
+                    dv = self.v[p] - u_wall
+                    keep = gap <= np.sqrt((dv * dv).sum(1)) * closing_in + CONTACT_TOL * r[p]
+                    p, k, face, sep, dist, gap, nf, u_wall = (arr[keep] for arr in (p, k, face, sep, dist, gap, nf, u_wall))
                 normal = np.where(face[:, None], nf, sep / np.maximum(dist, 1e-300)[:, None])
                 m = len(p)
                 parts.append(dict(i=p, j=np.full(m, n), normal=normal, arm_i=-r[p, None] * normal,
-                                  arm_j=np.zeros((m, 3)), u_wall=self.walls.surface_velocity(k, q, ctr),
+                                  arm_j=np.zeros((m, 3)), u_wall=u_wall,
                                   mu=self.walls.friction[k], mu_r=self.walls.rolling_friction[k], gap=gap,
                                   wall=np.ones(m, bool), face=face, k=k))
         if not parts:
@@ -694,15 +703,7 @@ class EventLoop:
     def step_contacts(self) -> dict:
         """Contacts that touch at the step's start or can close within it at the relative speed
         of their centres (the pair search reaches 2 × the largest speed × dt)."""
-        c = self.touching_contacts(0.0, reach=2 * self.speed * self.dt)
-        if not c or len(c["i"]) == 0:
-            return c
-        n = len(self.state)
-        j = np.minimum(c["j"], n - 1)
-        dv = self.v[c["i"]] - np.where((c["j"] < n)[:, None], self.v[j], 0.0) - c["u_wall"]
-        speed = np.sqrt((dv * dv).sum(1))
-        keep = c["gap"] <= speed * self.dt + CONTACT_TOL * self.radius[c["i"]]
-        return {key: value[keep] for key, value in c.items()}
+        return self.touching_contacts(0.0, reach=2 * self.speed * self.dt, closing_in=self.dt)
 
     def dense_step(self, c):
         """Solve every contact of the step at once (time-stepping contact dynamics), for beds and
@@ -713,7 +714,7 @@ class EventLoop:
         e (u dt − g) (target e u − (1 + e) g / dt), a slower one closes its gap but not more
         (−g / dt), an overlap opens at 0.2 overlap / dt. Impulses: normal >= 0, tangential in the
         Coulomb cone; projected Gauss–Seidel over the contacts one at a time (compiled:
-        ``pmpm.gauss_seidel``), at most ``dense_sweeps`` sweeps, warm-started from the impulses
+        ``pmpm.contact_kernels``), at most ``dense_sweeps`` sweeps, warm-started from the impulses
         of the previous step (by particle ids). Then everything flies to the end of the step."""
         state, n, s = self.state, len(self.state), self.settings
         c = unique_wall_contacts(c)
@@ -875,10 +876,8 @@ class EventLoop:
             return none, none
         x = self.state.x[particles]
         reach = self.radius[particles] + travel
-        if len(particles) > 64:  # many particles: one tree-to-tree search, no per-point lists
-            near = cKDTree(x).sparse_distance_matrix(self.wall_tree, float(reach.max() + self.wall_reach.max()),
-                                                     output_type="ndarray")
-            row, k = near["i"].astype(np.int64), near["j"].astype(np.int64)
+        if len(particles) > 64:  # many particles: one search per triangle, within its own size
+            k, row = flatten(cKDTree(x).query_ball_point(self.wall_centroid, self.wall_reach + reach.max()))
         else:
             found = self.wall_tree.query_ball_point(x, reach + self.wall_reach.max())
             sizes = np.fromiter((len(f) for f in found), np.int64, len(found))
@@ -888,9 +887,10 @@ class EventLoop:
             return none, none
         d = x[row] - self.wall_centroid[k]
         height = (d * self.walls.normal[k]).sum(1)  # the centroid lies in the plane
-        near = ((np.sqrt((d * d).sum(1)) <= reach[row] + self.wall_reach[k])
-                & (height <= reach[row] + self.wall_travel[k])
-                & (height >= -self.radius[particles[row]] - self.wall_travel[k]))
+        near = np.flatnonzero((np.sqrt((d * d).sum(1)) <= reach[row] + self.wall_reach[k])
+                              & (height <= reach[row] + self.wall_travel[k])
+                              & (height >= -self.radius[particles[row]] - self.wall_travel[k]))
+        near = near[np.lexsort((k[near], row[near]))]  # by particle, then triangle: not the search's order
         return particles[row[near]], k[near]
 
     def push_wall_events(self, particles, t):
@@ -1106,7 +1106,7 @@ class ContactSet:
 
     def gauss_seidel(self, rows, target, sweeps, tol) -> np.ndarray:
         """Coupled contacts with friction: projected Gauss–Seidel sweeps over the contacts, one at
-        a time (``pmpm.gauss_seidel``), on the impulses accumulated so far (so a prior solve is
+        a time (``pmpm.contact_kernels``), on the impulses accumulated so far (so a prior solve is
         the warm start), until no contact changes a velocity by more than ``tol`` (m/s). Returns
         the sticking flags."""
         lam_n, lam_t = self.lam_n[rows], self.lam_t[rows]  # copies (fancy indexing)

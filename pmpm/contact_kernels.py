@@ -1,4 +1,5 @@
-"""Projected Gauss–Seidel sweeps over sphere contacts, compiled (numba).
+"""Compiled (numba) kernels of the contacts: projected Gauss–Seidel sweeps over sphere contacts,
+and the pair filter of the dense step's contact search.
 
 One contact at a time, in the order given: the normal impulse λ_n is clamped to >= 0 and the
 tangential impulse λ_t to the Coulomb cone |λ_t| <= μ λ_n, both on the impulses accumulated so
@@ -11,15 +12,24 @@ contact-point velocity of i relative to j is u = v_i − v_j − u_wall − (r_i
 impulse J on i (−J on j) changes ω_i by −r_i (n × J)/I_i and ω_j by −r_j (n × J)/I_j. A wall, a
 fixed or a deposited particle is a body with zero inverse mass and inertia.
 
-The kernel is compiled on its first call and cached next to this file (numba writes its cache
-files under a temporary name and renames them, so ranks that compile at once do not clash).
-Compiled code is deterministic: the same contacts in the same order give the same bits on every
-rank, which the replicated particle update needs.
+The kernels are compiled on their first call and cached next to this file (numba writes its
+cache files under a temporary name and renames them, so ranks that compile at once do not clash);
+numba itself is imported then too (~0.3 s), so runs without collisions never load it. Compiled
+code is deterministic: the same contacts in the same order give the same bits on every rank,
+which the replicated particle update needs.
 """
 from __future__ import annotations
 
+from functools import cache
+
 import numpy as np
-from numba import njit
+
+
+@cache
+def compiled(function):
+    """``function`` compiled by numba (nopython, cached on disk), on first use."""
+    from numba import njit
+    return njit(cache=True)(function)
 
 
 def projected_gauss_seidel(i, j, normal, r_i, r_j, u_wall, target, mu, inv_mass, inv_inertia, v, omega,
@@ -45,12 +55,11 @@ def projected_gauss_seidel(i, j, normal, r_i, r_j, u_wall, target, mu, inv_mass,
             raise TypeError(f"{name} must be a C-contiguous float64 array (it is updated in place)")
     as_int = lambda a: np.ascontiguousarray(a, np.int64)
     as_float = lambda a: np.ascontiguousarray(a, np.float64)
-    return int(_sweeps(as_int(i), as_int(j), as_float(normal), as_float(r_i), as_float(r_j), as_float(u_wall),
+    return int(compiled(_sweeps)(as_int(i), as_int(j), as_float(normal), as_float(r_i), as_float(r_j), as_float(u_wall),
                        as_float(target), as_float(mu), as_float(inv_mass), as_float(inv_inertia), v, omega,
                        lam_n, lam_t, int(sweeps), float(tol)))
 
 
-@njit(cache=True)
 def _sweeps(i, j, normal, r_i, r_j, u_wall, target, mu, inv_mass, inv_inertia, v, omega, lam_n, lam_t,
             sweeps, tol):  # pragma: no cover - compiled
     m = len(i)
@@ -117,3 +126,29 @@ def _sweeps(i, j, normal, r_i, r_j, u_wall, target, mu, inv_mass, inv_inertia, v
         if largest <= tol:
             break
     return done
+
+
+def closing_pairs(pairs, x, v, radius, free, reach, horizon, tol) -> np.ndarray:
+    """(k,) bool over candidate ``pairs`` (k, 2) of particles: at least one ``free``, centres
+    apart, and a gap g = |x_i − x_j| − r_i − r_j with g <= ``reach`` + tol (r_i + r_j) (m) and
+    g <= |v_i − v_j| ``horizon`` + tol r_i: it can close within ``horizon`` (s) at the centres'
+    relative speed. x, v (n, 3), radius (n,), free (n,) bool."""
+    as_float = lambda a: np.ascontiguousarray(a, np.float64)
+    return compiled(_closing_pairs)(np.ascontiguousarray(pairs, np.int64), as_float(x), as_float(v), as_float(radius),
+                                    np.ascontiguousarray(free, np.bool_), float(reach), float(horizon), float(tol))
+
+
+def _closing_pairs(pairs, x, v, radius, free, reach, horizon, tol):  # pragma: no cover - compiled
+    keep = np.zeros(len(pairs), np.bool_)
+    for c in range(len(pairs)):
+        a, b = pairs[c, 0], pairs[c, 1]
+        if not (free[a] or free[b]):
+            continue
+        d0, d1, d2 = x[a, 0] - x[b, 0], x[a, 1] - x[b, 1], x[a, 2] - x[b, 2]
+        dist = np.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+        gap = dist - (radius[a] + radius[b])
+        if dist <= 0 or gap > tol * (radius[a] + radius[b]) + reach:
+            continue
+        w0, w1, w2 = v[a, 0] - v[b, 0], v[a, 1] - v[b, 1], v[a, 2] - v[b, 2]
+        keep[c] = gap <= np.sqrt(w0 * w0 + w1 * w1 + w2 * w2) * horizon + tol * radius[a]
+    return keep
