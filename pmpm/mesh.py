@@ -319,9 +319,12 @@ class Mesh:
         if len(rest) and k > 1:
             _, others = self._center_tree.query(points[rest], k=k)
             others = others.reshape(len(rest), k)
-            inside = self.contains(others, points[rest][:, None, :])
-            hit = inside.any(axis=1)
-            found[rest[hit]] = others[hit, np.argmax(inside[hit], axis=1)]
+            for column in range(k):  # nearest first; most points lie in one of the first few
+                inside = self.contains(others[:, column], points[rest])
+                found[rest[inside]] = others[inside, column]
+                rest, others = rest[~inside], others[~inside]
+                if len(rest) == 0:
+                    break
         return found
 
     def contains(self, cells: np.ndarray, points: np.ndarray) -> np.ndarray:
