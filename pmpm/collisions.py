@@ -28,6 +28,7 @@ that starts with many contacts solves them all at once (time-stepping contact dy
 from __future__ import annotations
 
 import heapq
+from itertools import chain
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -35,8 +36,8 @@ from scipy import sparse
 from scipy.sparse.linalg import spsolve
 from scipy.spatial import cKDTree
 
-from .errors import CaseError
 from .contact_kernels import closing_pairs, projected_gauss_seidel
+from .errors import CaseError
 from .particles import FIXED, FREE, ParticleState
 
 DEFAULT_RESTITUTION, DEFAULT_FRICTION, DEFAULT_ROLLING_FRICTION = 0.9, 0.3, 0.0
@@ -879,10 +880,7 @@ class EventLoop:
         if len(particles) > 64:  # many particles: one search per triangle, within its own size
             k, row = flatten(cKDTree(x).query_ball_point(self.wall_centroid, self.wall_reach + reach.max()))
         else:
-            found = self.wall_tree.query_ball_point(x, reach + self.wall_reach.max())
-            sizes = np.fromiter((len(f) for f in found), np.int64, len(found))
-            row = np.repeat(np.arange(len(particles)), sizes)
-            k = np.fromiter((t for f in found for t in f), np.int64, int(sizes.sum()))
+            row, k = flatten(self.wall_tree.query_ball_point(x, reach + self.wall_reach.max()))
         if len(k) == 0:
             return none, none
         d = x[row] - self.wall_centroid[k]
@@ -1290,9 +1288,9 @@ def wall_distances(x, walls: Walls, reach) -> np.ndarray:
 
 def flatten(found) -> tuple[np.ndarray, np.ndarray]:
     """A k-d tree's per-point lists of neighbours as (point, neighbour) index arrays."""
-    sizes = np.fromiter((len(f) for f in found), np.int64, len(found))
+    sizes = np.fromiter(map(len, found), np.int64, len(found))
     row = np.repeat(np.arange(len(found)), sizes)
-    return row, np.fromiter((t for f in found for t in f), np.int64, int(sizes.sum()))
+    return row, np.fromiter(chain.from_iterable(found), np.int64, int(sizes.sum()))
 
 
 def overlaps_existing(state: ParticleState, new) -> np.ndarray:
