@@ -1,10 +1,12 @@
 """Where explicit particle–fluid coupling goes unstable, and whether the implicit update holds.
 
-    .venv/bin/python bench/stability.py          # about 10 minutes on one core
+    .venv/bin/python bench/stability.py          # about 15 minutes on one core
+    .venv/bin/python bench/stability.py --quick  # the default scheme at the light end, 2 minutes
 
 A sphere (d = 8 mm) released at rest in a closed box of liquid (4 diameters wide, 8 tall) under
 gravity, over density ratio ρp/ρf (1000 … 0.3), cells per diameter (2 … 16), time step (as the
-diffusion number ν dt/h²) and particle update (``[coupling] update``), 30 steps each. A run is
+diffusion number ν dt/h²), forcing and particle update (``[coupling] forcing, update``), 30 steps
+each. A run is
 
 * ``rings``  — the run stopped with exit-3 advice (the explicit update's ringing detector);
 * ``blows``  — the particle velocity stopped being finite, or exceeded 10 × the Stokes speed;
@@ -29,15 +31,17 @@ from pmpm.errors import NumericalError  # noqa: E402
 RATIOS = (1000.0, 2.0, 1.2, 0.8, 0.6, 0.5, 0.4, 0.3)
 RESOLUTIONS = (2, 4, 8, 16)
 DIFFUSION = (0.1, 0.4)
-UPDATES = ("explicit", "implicit")
+SCHEMES = (("patch", "explicit"), ("penalty", "explicit"), ("penalty", "implicit"))  # [coupling] forcing, update
+if "--quick" in sys.argv:   # the default scheme only, 2–8 cells per diameter, the light end
+    SCHEMES, RESOLUTIONS, RATIOS = (("penalty", "implicit"),), (2, 4, 8), (1.2, 0.8, 0.5, 0.3, 0.1)
 
 
-def run(ratio, cpd, diffusion, update, d=0.008, mu=0.5, rho_f=1000.0, steps=30):
+def run(ratio, cpd, diffusion, forcing, update, d=0.008, mu=0.5, rho_f=1000.0, steps=30):
     h = d / cpd
     n = int(round(4 * d / h)) if cpd < 16 else int(round(3 * d / h))
     dt = diffusion * h * h * rho_f / mu
     sim = simulation(MPI.COMM_SELF, Path(tempfile.mkdtemp()), L=n * h, H=2 * n * h, n=n, m=2 * n, mu=mu,
-                     rho_f=rho_f, rho_p=ratio * rho_f, radius=d / 2, rule="subcell", update=update,
+                     rho_f=rho_f, rho_p=ratio * rho_f, radius=d / 2, rule="subcell", update=update, forcing=forcing,
                      gravity="[0.0, 0.0, -9.81]", dt=dt, position=f"[{n * h / 2 + 0.1 * h}, {n * h / 2}, {n * h}]")
     stokes = abs(ratio - 1) * rho_f * 9.81 * d * d / (18 * mu)
     speeds = []
@@ -58,31 +62,33 @@ def run(ratio, cpd, diffusion, update, d=0.008, mu=0.5, rho_f=1000.0, steps=30):
 
 def main():
     rows = []
-    for update in UPDATES:
+    for forcing, update in SCHEMES:
         for diffusion in DIFFUSION:
             for cpd in RESOLUTIONS:
                 for ratio in RATIOS:
                     if cpd == 16 and ratio not in (1000.0, 0.6, 0.5, 0.4):
                         continue   # the 16-cells-per-diameter runs are slow: the threshold region only
-                    outcome = run(ratio, cpd, diffusion, update)
-                    rows.append(dict(update=update, diffusion_number=diffusion, cells_per_diameter=cpd,
-                                     density_ratio=ratio, outcome=outcome))
-                    print(f"{update:8s} ν dt/h² {diffusion:4.2f}  {cpd:2d} cells/d  ρp/ρf {ratio:7.1f}: {outcome}",
-                          flush=True)
+                    outcome = run(ratio, cpd, diffusion, forcing, update)
+                    rows.append(dict(forcing=forcing, update=update, diffusion_number=diffusion,
+                                     cells_per_diameter=cpd, density_ratio=ratio, outcome=outcome))
+                    print(f"{forcing:8s} {update:8s} ν dt/h² {diffusion:4.2f}  {cpd:2d} cells/d  ρp/ρf {ratio:7.1f}: "
+                          f"{outcome}", flush=True)
     out = ROOT / "bench" / "results"
     out.mkdir(parents=True, exist_ok=True)
     with open(out / "stability.csv", "w", newline="") as f:
         writer = csv.DictWriter(f, fieldnames=list(rows[0]))
         writer.writeheader()
         writer.writerows(rows)
-    print("\n| update | ν dt/h² | cells per diameter | " + " | ".join(f"{r:g}" for r in RATIOS) + " |")
-    print("|---|---|---|" + "---|" * len(RATIOS))
-    for update in UPDATES:
+    print("\n| forcing | update | ν dt/h² | cells per diameter | " + " | ".join(f"{r:g}" for r in RATIOS) + " |")
+    print("|---|---|---|---|" + "---|" * len(RATIOS))
+    for forcing, update in SCHEMES:
         for diffusion in DIFFUSION:
             for cpd in RESOLUTIONS:
                 found = {r["density_ratio"]: r["outcome"] for r in rows
-                         if (r["update"], r["diffusion_number"], r["cells_per_diameter"]) == (update, diffusion, cpd)}
-                print(f"| {update} | {diffusion:g} | {cpd} | " + " | ".join(found.get(r, "") for r in RATIOS) + " |")
+                         if (r["forcing"], r["update"], r["diffusion_number"], r["cells_per_diameter"])
+                         == (forcing, update, diffusion, cpd)}
+                print(f"| {forcing} | {update} | {diffusion:g} | {cpd} | "
+                      + " | ".join(found.get(r, "") for r in RATIOS) + " |")
 
 
 if __name__ == "__main__":

@@ -351,12 +351,13 @@ class Simulation:
         if cfl > run.max_cfl and self.comm.rank == 0:
             warn(self.comm, f"[run] dt = {run.dt:g} s gives a CFL number of {cfl:.2f} at the boundary velocities "
                             f"(above max_cfl = {run.max_cfl:g}); the explicit convection may go unstable")
-        # the particle forces depend on the diffusion number ν dt/h² (docs/coupling.md): say it
+        # the paper's patch makes the particle forces depend on ν dt/h² (docs/coupling.md): say it
         diffusion = self.comm.allreduce(fluid.viscosity / fluid.density * run.dt / h ** 2, op=MPI.MAX)
         return (f"  flow:      ρ = {fluid.density:g} kg/m³, μ = {fluid.viscosity:g} Pa s, {fluid.convection} "
                 f"convection, CFL at boundary speeds {cfl:.2f}, ν dt/h² {diffusion:.3g}; coupling "
-                f"{self.case.coupling.mode}, {self.case.coupling.volume_fraction} volume fraction, "
-                f"{self.case.coupling.update} update, {self.case.coupling.forcing_passes} forcing passes")
+                f"{self.case.coupling.mode}, {self.case.coupling.forcing} forcing, "
+                f"{self.case.coupling.volume_fraction} volume fraction, {self.case.coupling.update} update, "
+                f"{self.case.coupling.forcing_passes} forcing passes")
 
     def summary(self, status: str, setup_seconds: float, total_seconds: float) -> dict:
         state = self.particles

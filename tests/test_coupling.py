@@ -27,6 +27,7 @@ update = "{update}"
 forcing_passes = {passes}
 forcing = "{forcing}"
 penalty_strength = {strength}
+subcell_points = {k}
 [[particles.add]]
 position = {position}
 velocity = {velocity}
@@ -39,7 +40,7 @@ motion = "{motion}"
 DEFAULTS = dict(end_time=0.1, dt=0.01, gravity="[0.0, 0.0, 0.0]", L=0.08, H=0.08, n=16, m=16, rho_f=1000.0,
                 mu=1.0, rule="subcell", update="implicit", position="[0.04, 0.04, 0.04]",
                 velocity="[0.0, 0.0, 0.0]", omega="[0.0, 0.0, 0.0]", radius=0.01, rho_p=1000.0, motion="free", extra="", passes=3,
-                forcing="penalty", strength=35.0)
+                forcing="penalty", strength=35.0, k=4)
 
 
 def simulation(comm, tmp_path, **values):
@@ -109,8 +110,11 @@ def test_neutrally_buoyant_sphere_stays_put(tmp_path):
 
 
 def test_light_particle_explicit_rings_implicit_is_stable(tmp_path):
-    """ρ_p/ρ_f = 0.3 rising under gravity: the paper's explicit update stops with exit-3 advice;
-    the implicit update (default) rises smoothly, also at ρ_p/ρ_f = 0.5."""
+    """ρ_p/ρ_f = 0.3 rising under gravity: the paper's explicit update (and patch) stops with exit-3
+    advice; the implicit update with the penalty (the defaults) rises without ringing, also at
+    ρ_p/ρ_f = 0.5. Its speed is not perfectly smooth: the momentum of the fluid the sphere sweeps
+    over jitters as cells enter and leave it, which moves a light sphere's speed by up to ~1.5 % a
+    step at 3 cells per diameter; the ringing this test guards against grows to the blow-up."""
     light = dict(gravity="[0.0, 0.0, -9.81]", dt=0.002, n=12, m=24, H=0.16, mu=0.05,
                  position="[0.04, 0.04, 0.05]")
     sim = simulation(MPI.COMM_SELF, tmp_path, rho_p=300.0, update="explicit", forcing="patch", **light)
@@ -124,9 +128,10 @@ def test_light_particle_explicit_rings_implicit_is_stable(tmp_path):
             speeds.append(sim.particles.v[0, 2])
         speeds = np.array(speeds)
         assert (speeds > 0).all(), "a light particle rises"
-        flips = np.sum(np.diff(np.sign(np.diff(speeds))) != 0)
-        assert flips <= 8, f"ρp/ρf = {ratio}: the rise speed rings ({flips} sign changes of its increment)"
-        assert speeds[-1] < 1.0
+        jitter = float(np.abs(np.diff(speeds[-20:])).max()) / speeds[-1]
+        print(f"ρp/ρf = {ratio}: rise speed {speeds[-1]:.3f} m/s, last 20 steps change it by at most {jitter:.1%}")
+        assert jitter < 0.03, f"ρp/ρf = {ratio}: the rise speed rings"
+        assert speeds[-1] > speeds[29] and speeds[-1] < 1.0
 
 
 @pytest.mark.mpi
@@ -190,6 +195,17 @@ def test_stokes_drag(tmp_path):
     assert abs(ratios[8, "subcell"][2] - 1) < abs(ratios[4, "subcell"][2] - 1), "refinement helps"
 
 
+def test_drag_does_not_depend_on_the_time_step(tmp_path):
+    """The penalty forcing: Stokes drag at 8 cells per diameter over a 4× range of ν dt/h² (0.1 and
+    0.4, the same simulated time) within 1.5 % (measured 0.5 %). The paper's patch moved by 11 %
+    over the same range (docs/coupling.md), because it re-blends the cut cells every step."""
+    coarse = stokes_run(MPI.COMM_SELF, tmp_path, 8, "subcell", steps=10, diffusion_number=0.4)[2]
+    fine = stokes_run(MPI.COMM_SELF, tmp_path, 8, "subcell", steps=40, diffusion_number=0.1)[2]
+    print(f"Stokes drag / 6πμaU at ν dt/h² = 0.4: {coarse:.4f}, at 0.1: {fine:.4f}")
+    assert coarse == pytest.approx(fine, rel=0.015)
+    assert fine == pytest.approx(1.0, abs=0.03)
+
+
 def settling_run(comm, tmp_path, cells_per_diameter, rule="subcell", lateral_diameters=6, steps=None):
     """A sphere (d = 8 mm, ρp = 1500) settling from rest in a closed box of liquid (ρf = 1000,
     μ = 0.1): returns (times, settling speeds, Schiller–Naumann speed with the Di Felice wall factor)."""
@@ -218,8 +234,8 @@ def settling_run(comm, tmp_path, cells_per_diameter, rule="subcell", lateral_dia
 
 
 
-@pytest.mark.parametrize("forcing, physical_bound", [("patch", 1e-2), ("penalty", 6e-2)])
-def test_momentum_of_fluid_and_particle_is_conserved(tmp_path, request, forcing, physical_bound):
+@pytest.mark.parametrize("forcing", ["patch", "penalty"])
+def test_momentum_of_fluid_and_particle_is_conserved(tmp_path, request, forcing):
     """No wall, inlet or gravity: a spinning sphere (ρp/ρf = 2) launched through still fluid in a
     box whose faces are all open (outlets at p = 0: no pressure or viscous force on them). The
     momentum of the fluid outside the particle plus the particle's stays what it was, less what
@@ -228,11 +244,10 @@ def test_momentum_of_fluid_and_particle_is_conserved(tmp_path, request, forcing,
     The fluid inside a particle is the solver's, not the user's, so its momentum is not counted:
     Σ α ρ V (V + ω × r) for the paper's patch, which moves it rigidly with the particle, and the
     measured Σ α ρ V u for the penalty, whose impulse on the particle includes that fluid's change.
-    Either scheme conserves momentum exactly (round-off; the penalty's rows are stiff, so its
-    momentum solves run at rtol 1e-13 here) once one more term is counted: the change of that
-    internal momentum when the sphere moves onto new cells. Physically, that term is the
-    conservation error: under 1 % for the patch; 4.7 % for the penalty, whose cut cells lag the
-    rigid motion as the sphere decelerates (the fluid they hold moves on unaccounted)."""
+    The penalty measures that change over a control volume moving with the particle, so it conserves
+    this momentum exactly (round-off; its rows are stiff, so its momentum solves run at rtol 1e-13
+    here). The patch conserves it exactly only once one more term is counted, the change of the
+    internal momentum when the sphere moves onto new cells; physically that term is its error."""
     from petsc4py import PETSc
     sides = ("xmin", "xmax", "ymin", "ymax", "zmin", "zmax")
     open_faces = "".join(f'[boundary.{b}]\ntype = "outlet"\n' for b in sides)
@@ -252,6 +267,7 @@ def test_momentum_of_fluid_and_particle_is_conserved(tmp_path, request, forcing,
         mass = flow.rho * coupling.shared_alpha(touched) * mesh.cell_volume[c]
         if forcing == "patch":
             return (mass[:, None] * (state.v[p] + np.cross(state.omega[p], mesh.cell_center[c] - x[p]))).sum(axis=0)
+        mass = flow.rho * coupling.smooth_fraction(state, touched, x) * mesh.cell_volume[c]
         return (mass[:, None] * sim.fluid_state.u[c]).sum(axis=0)
 
     start = state.mass[0] * state.v[0]
@@ -276,8 +292,11 @@ def test_momentum_of_fluid_and_particle_is_conserved(tmp_path, request, forcing,
           f"physical ≤ {physical:.1e}, with the coverage changes counted ≤ {discrete:.1e}; "
           f"carried out {np.linalg.norm(carried_out) / scale:.1e}")
     assert lost > 0.5              # the fluid took most of the particle's momentum ...
-    assert discrete < 1e-9         # ... the scheme kept all of it 
-    assert physical < physical_bound  # ... and the moving coverage lost little of it
+    if forcing == "penalty":
+        assert physical < 1e-9     # ... and the penalty kept all of it
+    else:
+        assert discrete < 1e-9     # ... the patch kept all of it but the moving coverage's share,
+        assert physical < 1e-2     # ... which lost under 1 % of it
 
 
 @pytest.mark.parametrize("ratio", [0.8, 0.5])
