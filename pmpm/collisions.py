@@ -28,8 +28,8 @@ that starts with many contacts solves them all at once (time-stepping contact dy
 from __future__ import annotations
 
 import heapq
-from itertools import chain
 from dataclasses import dataclass, field
+from itertools import chain
 
 import numpy as np
 from scipy import sparse
@@ -576,7 +576,8 @@ class EventLoop:
                 if closing_in is not None:
                     dv = self.v[p] - u_wall
                     keep = gap <= np.sqrt((dv * dv).sum(1)) * closing_in + CONTACT_TOL * r[p]
-                    p, k, face, sep, dist, gap, nf, u_wall = (arr[keep] for arr in (p, k, face, sep, dist, gap, nf, u_wall))
+                    p, k, face, sep, dist, gap, nf, u_wall = (arr[keep]
+                                                              for arr in (p, k, face, sep, dist, gap, nf, u_wall))
                 normal = np.where(face[:, None], nf, sep / np.maximum(dist, 1e-300)[:, None])
                 m = len(p)
                 parts.append(dict(i=p, j=np.full(m, n), normal=normal, arm_i=-r[p, None] * normal,

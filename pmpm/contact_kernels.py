@@ -1,11 +1,12 @@
 """Compiled (numba) kernels of the contacts: projected Gauss–Seidel sweeps over sphere contacts,
 and the pair filter of the dense step's contact search.
 
-One contact at a time, in the order given: the normal impulse λ_n is clamped to >= 0 and the
-tangential impulse λ_t to the Coulomb cone |λ_t| <= μ λ_n, both on the impulses accumulated so
-far (so impulses already applied are the warm start), and the change is applied to the two bodies
-at once, so the next contact sees it. Each update only removes energy. Used by the dense step and
-by the small coupled sets of resting contacts (``pmpm.collisions``).
+Projected Gauss–Seidel takes one contact at a time, in the order given: the normal impulse λ_n
+is clamped to >= 0 and the tangential impulse λ_t to the Coulomb cone |λ_t| <= μ λ_n, both on
+the impulses accumulated so far (so impulses already applied are the warm start), and the change
+is applied to the two bodies at once, so the next contact sees it. Each update only removes
+energy. Used by the dense step and by the small coupled sets of resting contacts
+(``pmpm.collisions``).
 
 Bodies are spheres: the arms from the centres to the contact point are −r_i n and r_j n, so the
 contact-point velocity of i relative to j is u = v_i − v_j − u_wall − (r_i ω_i + r_j ω_j) × n and an
@@ -55,9 +56,10 @@ def projected_gauss_seidel(i, j, normal, r_i, r_j, u_wall, target, mu, inv_mass,
             raise TypeError(f"{name} must be a C-contiguous float64 array (it is updated in place)")
     as_int = lambda a: np.ascontiguousarray(a, np.int64)
     as_float = lambda a: np.ascontiguousarray(a, np.float64)
-    return int(compiled(_sweeps)(as_int(i), as_int(j), as_float(normal), as_float(r_i), as_float(r_j), as_float(u_wall),
-                       as_float(target), as_float(mu), as_float(inv_mass), as_float(inv_inertia), v, omega,
-                       lam_n, lam_t, int(sweeps), float(tol)))
+    sweep = compiled(_sweeps)
+    return int(sweep(as_int(i), as_int(j), as_float(normal), as_float(r_i), as_float(r_j), as_float(u_wall),
+                     as_float(target), as_float(mu), as_float(inv_mass), as_float(inv_inertia), v, omega,
+                     lam_n, lam_t, int(sweeps), float(tol)))
 
 
 def _sweeps(i, j, normal, r_i, r_j, u_wall, target, mu, inv_mass, inv_inertia, v, omega, lam_n, lam_t,

@@ -4,11 +4,13 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from scipy.spatial import cKDTree
 
 from pmpm.case import Section
 from pmpm.collisions import (CollisionSettings, Walls, advance_with_collisions, build_walls,
                              check_initial_particles, closest_points_on_triangles, collision_settings,
-                             overlaps_existing)
+                             contact_impulse, overlaps_existing)
+from pmpm.contact_kernels import closing_pairs, projected_gauss_seidel
 from pmpm.errors import CaseError
 from pmpm.injection import NewParticles
 from pmpm.particles import FIXED, ParticleState
@@ -446,6 +448,44 @@ def test_dense_bed_rests():
     assert np.abs(state.x - x).max() < 1e-3 * 2 * r
     pairs = np.linalg.norm(state.x[:, None] - state.x[None], axis=2) + np.eye(len(x))
     assert pairs.min() > 2 * r * (1 - 1e-3)
+
+
+@pytest.mark.parametrize("mu", [0.05, 1.0])
+def test_gauss_seidel_single_contact_is_the_closed_form(mu):
+    """One contact alone: the compiled sweep gives the closed-form impulse (contact_impulse) in one
+    update, sliding or sticking; a second sweep changes nothing."""
+    r, m1, m2 = 0.01, 0.004, 0.012
+    n = np.array([0.0, 0.0, 1.0])  # towards body 0
+    inv_m, inv_i = np.array([1 / m1, 1 / m2]), np.array([2.5 / (m1 * r * r), 2.5 / (m2 * r * r)])
+    v = np.array([[0.3, -0.1, -0.5], [0.0, 0.2, 0.4]])
+    omega = np.array([[1.0, 0.0, 2.0], [0.0, -3.0, 0.0]])
+    u = v[0] - v[1] - np.cross(r * omega[0] + r * omega[1], n)
+    k_t = inv_m.sum() + (inv_i * r * r).sum()
+    J, _ = contact_impulse(u, n, inv_m.sum(), k_t, 0.0, mu)
+    lam_n, lam_t = np.zeros(1), np.zeros((1, 3))
+    sweeps = projected_gauss_seidel(np.array([0]), np.array([1]), n[None], np.array([r]), np.array([r]),
+                                    np.zeros((1, 3)), np.zeros(1), np.array([mu]), inv_m, inv_i, v, omega,
+                                    lam_n, lam_t, 10, 1e-12)
+    assert sweeps == 2
+    assert np.allclose(lam_n[0] * n + lam_t[0], J, rtol=1e-12, atol=1e-18)
+    after = v[0] - v[1] - np.cross(r * omega[0] + r * omega[1], n)
+    assert after @ n == pytest.approx(0.0, abs=1e-15)
+
+
+def test_closing_pairs_matches_the_direct_filter():
+    """The compiled pair filter of the dense step against the same conditions in numpy."""
+    rng = np.random.default_rng(3)
+    n = 400
+    x, v = rng.uniform(0, 0.1, (n, 3)), rng.normal(0, 0.5, (n, 3))
+    radius, free = rng.uniform(0.002, 0.004, n), rng.random(n) > 0.2
+    pairs = cKDTree(x).query_pairs(0.012, output_type="ndarray")
+    reach, horizon, tol = 0.004, 2e-3, 1e-6
+    keep = closing_pairs(pairs, x, v, radius, free, reach, horizon, tol)
+    i, j = pairs.T
+    gap = np.linalg.norm(x[i] - x[j], axis=1) - radius[i] - radius[j]
+    direct = ((free[i] | free[j]) & (gap <= tol * (radius[i] + radius[j]) + reach)
+              & (gap <= np.linalg.norm(v[i] - v[j], axis=1) * horizon + tol * radius[i]))
+    assert 0 < keep.sum() < len(pairs) and np.array_equal(keep, direct)
 
 
 # -- set-up helpers ----------------------------------------------------------------------------
