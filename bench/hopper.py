@@ -1,6 +1,6 @@
 """DEM-only hopper discharge (no flow), pmpm against LIGGGHTS on the same work.
 
-    .venv/bin/python bench/hopper.py [N [SIM_TIME [DT]]]      # defaults: 10000 particles, 1.0 s, 2e-3 s
+    OMP_NUM_THREADS=1 .venv/bin/python bench/hopper.py [N [SIM_TIME [DT]]]   # 10000 particles, 1.0 s, 2e-3 s
 
 The peer's geometry and particles (../shared/peers/liggghts_hopper.sh): conical hopper, orifice
 D0 = 30 mm, spheres d = 4 mm, ρ = 2500, restitution 0.9, friction 0.3. As the peer does, the
@@ -12,7 +12,9 @@ half of SIM_TIME) against Beverloo's law (C = 0.58, k = 1.5, bulk density 0.6 ρ
 (impacts faster than the rest speed) per wall second, events and dense-step contacts and sweeps
 per step; then the LIGGGHTS peer (Hertz contacts at dt = 2e-5 s) run in the same invocation and
 the time-to-solution ratio pmpm/LIGGGHTS. Needs the peer's Debian package (liggghts), which the
-peer script installs with apt-get if missing.
+peer script installs with apt-get if missing. Every rank solves every contact (the dense steps'
+sweeps are sequential), so 2 ranks are no faster than 1 here; the fill compiles the contact
+kernels (numba) once, the timed runs load them from numba's cache.
 """
 import json
 import os
