@@ -5,7 +5,8 @@ killed at any moment leaves the previous checkpoint whole (SPEC §4). Everything
 order independent of the rank count, so a run may restart on another number of ranks:
 
 - attributes: time, step, next particle id, particles removed, n_global_cells, injector releases;
-- ``particles/*``: the replicated particle arrays (and their last hydrodynamic force and torque);
+- ``particles/*``: the replicated particle arrays (and their last hydrodynamic force and torque,
+  and the coupling's fluid momentum under each particle at the end of the last step);
 - ``fluid/velocity``, ``fluid/pressure``: cells in the serial order of the undistributed mesh;
 - ``fluid/face_key`` (the 3 smallest serial vertex numbers of a face), ``fluid/face_from`` (the
   serial cell the flux leaves) and ``fluid/face_flux``: each face once, in any order.
@@ -45,6 +46,10 @@ def write(comm, folder: Path, mesh, simulation) -> None:
         group = f.create_group("particles")
         arrays = {name: getattr(state, name) for name in PARTICLE_FIELDS}
         arrays.update(hydro_force=simulation.hydro_force, hydro_torque=simulation.hydro_torque)
+        coupling = getattr(simulation, "coupling", None)
+        if coupling is not None and coupling.internal_end is not None:
+            # the penalty's fluid momentum under each particle at the end of the last step (by id)
+            arrays.update(coupling_ids=coupling.internal_end[0], coupling_fluid_under=coupling.internal_end[1])
         for name, values in arrays.items():
             values = np.asarray(values)
             dset = group.create_dataset(name, values.shape, dtype=values.dtype)
@@ -116,6 +121,9 @@ def restore(comm, data: dict, mesh, simulation, path: Path) -> None:
         setattr(state, name, particles[name].astype(getattr(state, name).dtype).reshape((-1,) + getattr(state, name).shape[1:]))
     simulation.hydro_force = particles["hydro_force"].reshape(-1, 3)
     simulation.hydro_torque = particles["hydro_torque"].reshape(-1, 3)
+    if "coupling_ids" in particles and simulation.coupling is not None:
+        simulation.coupling.internal_end = (particles["coupling_ids"].astype(np.int64),
+                                            particles["coupling_fluid_under"].reshape(-1, 6))
     if simulation.fluid_state is not None:
         fluid, stored = simulation.fluid_state, data["fluid"]
         fluid.u[:] = stored["velocity"][mesh.cell_serial]

@@ -46,3 +46,11 @@ def terminal_velocity(particle_density, fluid_density, viscosity, diameter, grav
         cd = wall_factor * schiller_naumann_drag_coefficient(reynolds)
         speed = np.sqrt(abs(weight) / (0.5 * fluid_density * cd * np.pi * diameter ** 2 / 4))
     return speed
+
+
+def di_felice_wall_factor(diameter_ratio: float, reynolds: float) -> float:
+    """Settling speed in a tube over that in unbounded fluid, ((1 − λ)/(1 − 0.33 λ))^a with
+    a = (3.3 + 0.085 Re)/(1 + 0.1 Re), λ = sphere over tube diameter (Di Felice 1996, fitted to
+    measurements for Re from 0.01 to 200)."""
+    exponent = (3.3 + 0.085 * reynolds) / (1 + 0.1 * reynolds)
+    return ((1 - diameter_ratio) / (1 - 0.33 * diameter_ratio)) ** exponent

@@ -21,6 +21,7 @@ box = {{ lower = [0, 0, 0], upper = [{L}, {L}, {H}], cells = [{n}, {n}, {m}] }}
 density = {rho_f}
 viscosity = {mu}
 pressure_rtol = 1e-10
+convection = "{convection}"
 [coupling]
 volume_fraction = "{rule}"
 update = "{update}"
@@ -40,7 +41,8 @@ motion = "{motion}"
 DEFAULTS = dict(end_time=0.1, dt=0.01, gravity="[0.0, 0.0, 0.0]", L=0.08, H=0.08, n=16, m=16, rho_f=1000.0,
                 mu=1.0, rule="subcell", update="implicit", position="[0.04, 0.04, 0.04]",
                 velocity="[0.0, 0.0, 0.0]", omega="[0.0, 0.0, 0.0]", radius=0.01, rho_p=1000.0, motion="free", extra="", passes=3,
-                forcing="penalty", strength=35.0, k=4)
+                forcing="penalty", strength=35.0, k=4,
+                convection="linear_upwind")
 
 
 def simulation(comm, tmp_path, **values):
