@@ -13,7 +13,8 @@ each. A run is
 * ``rings*`` — it finished, but its velocity increment changed sign more than 8 times;
 * ``ok``     — a smooth start: what the physics gives.
 
-Prints the table (docs/coupling.md has the measured one) and writes bench/results/stability.csv.
+Prints the table (docs/coupling.md has the measured one) and writes bench/results/stability.csv
+(stability_quick.csv with --quick).
 """
 import csv
 import sys
@@ -75,7 +76,7 @@ def main():
                           f"{outcome}", flush=True)
     out = ROOT / "bench" / "results"
     out.mkdir(parents=True, exist_ok=True)
-    with open(out / "stability.csv", "w", newline="") as f:
+    with open(out / ("stability_quick.csv" if "--quick" in sys.argv else "stability.csv"), "w", newline="") as f:
         writer = csv.DictWriter(f, fieldnames=list(rows[0]))
         writer.writeheader()
         writer.writerows(rows)
