@@ -49,7 +49,8 @@ def write(comm, folder: Path, mesh, simulation) -> None:
         coupling = getattr(simulation, "coupling", None)
         if coupling is not None and coupling.internal_end is not None:
             # the penalty's fluid momentum under each particle at the end of the last step (by id)
-            arrays.update(coupling_ids=coupling.internal_end[0], coupling_fluid_under=coupling.internal_end[1])
+            ids, fluid_under, centres = coupling.internal_end
+            arrays.update(coupling_ids=ids, coupling_fluid_under=fluid_under, coupling_centres=centres)
         for name, values in arrays.items():
             values = np.asarray(values)
             dset = group.create_dataset(name, values.shape, dtype=values.dtype)
@@ -123,7 +124,8 @@ def restore(comm, data: dict, mesh, simulation, path: Path) -> None:
     simulation.hydro_torque = particles["hydro_torque"].reshape(-1, 3)
     if "coupling_ids" in particles and simulation.coupling is not None:
         simulation.coupling.internal_end = (particles["coupling_ids"].astype(np.int64),
-                                            particles["coupling_fluid_under"].reshape(-1, 6))
+                                            particles["coupling_fluid_under"].reshape(-1, 6),
+                                            particles["coupling_centres"].reshape(-1, 3))
     if simulation.fluid_state is not None:
         fluid, stored = simulation.fluid_state, data["fluid"]
         fluid.u[:] = stored["velocity"][mesh.cell_serial]

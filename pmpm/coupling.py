@@ -1,34 +1,33 @@
-"""Big particles in the flow: touched cells, volume fractions, velocity patching, drag and torque.
+"""Big particles in the flow: touched cells, volume fractions, the forcing, drag and torque.
 
 The paper's eq. 1–2 (Figure 1): a cell is *touched* by a particle when one of its vertices lies in
-the sphere; in touched cells the fluid velocity becomes (1 − α) u + α (V + ω × r), and the
-momentum that this patch adds to the fluid is taken from the particle: that is the drag and the
-torque (r × F, r from the particle centre to the cell centre).
+the sphere, and carries the particle's volume fraction α; the fluid there is driven towards the
+rigid motion U = V + ω × r, and the momentum this takes from the particle is the drag and the
+torque (r × F, r from the particle centre to the cell centre). Two forcings (``[coupling] forcing``):
 
-Where the patch happens. The flow solver calls :meth:`Coupling.exchange` between its momentum
-predictor and its projection (direct forcing, as in immersed-boundary methods, ``forcing_passes``
-times), so the divergence-free face fluxes honour the particles; then once more after the
-projection (the paper's patch), where the particles are updated with all the momentum exchanged.
+``penalty`` (default). A penalty κ (U − u) with κ = s α/(1 − α) ν/h² (``penalty_strength`` s), solved
+implicitly with the diffusion of the momentum predictor (the flow solver calls
+:meth:`Coupling.penalty_terms` before each of its ``forcing_passes`` momentum solves). In a cut cell
+it balances the fluid's own viscous exchange, a balance without dt in it, so the forces do not
+depend on the time step. The impulse on a particle is what the penalty took, J = Σ ρ V κ dt (u − U),
+plus the change of the momentum of the fluid under it over a control volume moving with it
+(:meth:`Coupling.begin_step`); each pass updates the particles' guess of their new motion, damped
+by the cells' own response so that light particles converge (:meth:`Coupling.penalty_exchange`).
 
-The particle update, and why it is implicit. With M the fluid mass a particle covers
-(ρ_f Σ α V_cell) and ū* the mass-weighted predicted fluid velocity under it, the momentum that the
-patch exchanges is M (ū* − Vⁿ), so the paper's explicit update is
-
-    m (Vⁿ⁺¹ − Vⁿ) = dt F_ext + M (ū* − Vⁿ),
-
-which amplifies a velocity error by (M − m)/m each step: it oscillates and grows once
-ρ_p/ρ_f < 1/2, and rings well before that. pmpm solves particle and covered fluid together,
+``patch`` (the paper). After each momentum solve, u ← (1 − α) u + α U in touched cells, and once
+more after the projection; the momentum the patch adds is taken from the particle, with the update
 
     (m + (1 − θ) M) (Vⁿ⁺¹ − Vⁿ) = dt F_ext + M (ū* − Vⁿ),     θ = min(1, m/M),
 
-(the same for ω with the moments of inertia), which moves V at most all the way to ū*, never past
-it (docs/coupling.md has the measured stability map). Where m ≥ M (ρ_p ≥ ρ_f with M ≈ ρ_f V) it is
-the paper's update exactly; for lighter particles it adds M − m to the particle's inertia, an
-error in transients only (terminal velocities are unchanged). ``[coupling] update = "explicit"`` keeps θ = 1 always, and
-the run stops (exit 3) when a particle's velocity starts to ring.
+M the covered fluid mass and ū* the predicted fluid velocity under the particle (θ = 1 is the
+paper's explicit update, which rings for light particles). Re-blending the cut cells every step
+makes its forces depend on ν dt/h².
 
-Volume fraction rules (``[coupling] volume_fraction``): ``nodes`` (the paper: the share of the
-cell's vertices inside), ``subcell`` (the share of k³ sample points of the cell inside).
+``[coupling] update = "explicit"`` takes the impulse as it comes (no guesses, no damping), and the
+run stops (exit 3) when a particle's velocity starts to ring. Volume fraction rules
+(``[coupling] volume_fraction``): ``nodes`` (the paper: the share of the cell's vertices inside),
+``subcell`` (the share of k³ sample points of the cell inside). docs/coupling.md has the
+measurements.
 
 Parallel: each rank sums over its owned cells only; the per-particle sums meet in one Allreduce,
 then every rank applies the same update to its replicated copy of the particles.
@@ -89,7 +88,7 @@ class Coupling:
         corners = mesh.vertex_xyz[owned_vertices]
         self.cell_diameter = float(np.linalg.norm(corners.max(axis=1) - corners.min(axis=1), axis=1).max(initial=0))
         self.samples = reference_samples(mesh.cell_type, self.k) if self.rule == "subcell" else None
-        self.internal_end = None      # (ids, fluid momentum under each particle) at the end of the last step
+        self.internal_end = None      # (ids, fluid momentum under each particle, centres) at the last step's end
         self.pending = None           # momentum exchanged by the earlier forcing passes of this step
         self.last_change = None       # for detecting a ringing explicit update
         self.ringing = None
@@ -167,7 +166,7 @@ class Coupling:
         cell's total volume fraction, shared among the particles in it by their α."""
         total = np.bincount(touched.cell, touched.alpha, minlength=self.mesh.n_owned_cells)[touched.cell]
         covered = np.minimum(total, 1.0)
-        strength = np.minimum(self.penalty_strength * covered / np.maximum(1.0 - covered, 0.0 + 1e-300),
+        strength = np.minimum(self.penalty_strength * covered / np.maximum(1.0 - covered, 1e-300),
                               PENALTY_CAP)
         return strength * self.nu / self.h2[touched.cell] * touched.alpha / np.maximum(total, 1e-300)
 
@@ -211,10 +210,13 @@ class Coupling:
             return
         self.internal_start = self.fluid_under(state, touched, u)      # particles new to the flow
         if self.internal_end is not None:
-            known_ids, known = self.internal_end
+            known_ids, known, centre = self.internal_end
             position = np.minimum(np.searchsorted(known_ids, state.id), max(len(known_ids) - 1, 0))
             same = (known_ids[position] == state.id) if len(known_ids) else np.zeros(len(state), bool)
-            self.internal_start[same] = known[position[same]]
+            start = known[position[same]].copy()
+            # its moment about where the centre is now: L' = L − (x' − x) × P
+            start[:, 3:] -= np.cross(state.x[same] - centre[position[same]], start[:, :3])
+            self.internal_start[same] = start
 
     def smooth_fraction(self, state: ParticleState, touched: Touched, x: np.ndarray | None = None,
                         shared: bool = True) -> np.ndarray:
@@ -231,13 +233,18 @@ class Coupling:
         total = np.bincount(touched.cell, fraction, minlength=self.mesh.n_owned_cells)
         return fraction / np.maximum(total[touched.cell], 1.0)
 
-    def fluid_under(self, state, touched, u) -> np.ndarray:
-        """Collective. (n, 6): Σ f ρ V u under each particle, f the smooth fraction, and its moment
-        r × about the centre."""
+    def fluid_under(self, state, touched, u, x=None) -> np.ndarray:
+        """Collective. (n, 6): the momentum of the fluid under each particle, Σ f ρ V u with f the
+        smooth fraction, and its moment r × about the centre, scaled to the sphere's own volume
+        (``under_scale``: Σ f V wobbles by ~1e-3 as the sphere moves, which in a uniform stream gave
+        a particle an impulse out of nothing). ``x``: the centres, if not where ``state`` has them."""
         p, c = touched.particle, touched.cell
-        mass = self.rho * self.smooth_fraction(state, touched) * self.mesh.cell_volume[c]
-        r = self.mesh.cell_center[c] - state.x[p]
-        return self.particle_sums(len(state), p, r, mass, mass[:, None] * u[c])[2][0]
+        x = state.x if x is None else x
+        mass = self.rho * self.smooth_fraction(state, touched, x) * self.mesh.cell_volume[c]
+        covered, _, (momentum,) = self.particle_sums(len(state), p, self.mesh.cell_center[c] - x[p], mass,
+                                                     mass[:, None] * u[c])
+        self.under_scale = self.rho * state.volume / np.maximum(covered, np.finfo(float).tiny)
+        return self.under_scale[:, None] * momentum
 
     def penalty_exchange(self, state, touched, u, dt, external_force, external_torque, last, step, time):
         """Collective. The particles' share of a penalized step.
@@ -261,7 +268,7 @@ class Coupling:
         p, c = touched.particle, touched.cell
         r = self.mesh.cell_center[c] - state.x[p]
         m, inertia, free = state.mass, state.inertia, state.movable
-        under = self.rho * self.smooth_fraction(state, touched) * self.mesh.cell_volume[c]   # as fluid_under
+        under = self.rho * self.smooth_fraction(state, touched) * self.mesh.cell_volume[c]   # fluid_under's
         if not last:
             kappa = self.penalty_rates(touched)
             rigid = self.patched_v[p] + np.cross(self.patched_omega[p], r)
@@ -276,7 +283,7 @@ class Coupling:
             self.response, self.response_spin, (exchanged, internal) = self.particle_sums(
                 n, p, r, response, (volume * rate)[:, None] * (u[c] - rigid), under[:, None] * u[c])
             self.exchanged = exchanged                         # J of this pass's solve
-            self.pending[:] = exchanged + internal - self.internal_start   # J + ΔP
+            self.pending[:] = exchanged + self.under_scale[:, None] * internal - self.internal_start   # J + ΔP
             self.solved_v, self.solved_omega = self.patched_v, self.patched_omega
             if self.explicit:
                 return None
@@ -291,7 +298,7 @@ class Coupling:
         # after the projection: J of the last solve, ΔP with the projected velocities
         internal_end = self.fluid_under(state, touched, u)
         order = np.argsort(state.id)
-        self.internal_end = (state.id[order], internal_end[order])
+        self.internal_end = (state.id[order], internal_end[order], state.x[order].copy())
         impulse = self.exchanged + internal_end - self.internal_start
         momentum, angular = impulse[:, :3], impulse[:, 3:]
         # exact when the particle outweighs the cells' response (on coarse meshes several times
@@ -429,7 +436,8 @@ class Coupling:
                 "\"implicit\" (the default), or a smaller [run] dt")
 
 
-PENALTY_CAP = 1e3   # κ h²/ν of a cell wholly inside a particle: rigid to 1e-4 of its neighbours' pull
+PENALTY_CAP = 1e3   # κ h²/ν of a cell wholly inside a particle: rigid to ~1e-3 of its neighbours' pull;
+                    # larger caps inflate ‖b‖ of the momentum solves, whose rtol is relative to it
 
 
 def reference_samples(cell_type: str, k: int) -> np.ndarray:

@@ -286,7 +286,7 @@ class Simulation:
             info = self.flow.step(self.fluid_state, dt, patch=patch if len(state) else None,
                                   forcing_iterations=self.case.coupling.forcing_passes,
                                   step=self.step, time=self.time,
-                                  penalty=penalty if len(state) and coupling.penalty else None)
+                                  penalty=penalty if len(state) and coupling.penalty and coupling.two_way else None)
         self.pressure_iterations = getattr(self, "pressure_iterations", 0) + info["pressure_iterations"]
         self.volume_fraction[:self.mesh.n_owned_cells] = coupling.volume_fraction(touched)
         self.flow.check(self.fluid_state, self.step, self.time)
