@@ -233,9 +233,9 @@ def test_drag_does_not_depend_on_the_time_step(tmp_path):
 def test_settling_sphere_terminal_velocity(tmp_path):
     """A sphere (d = 8 mm, ρp/ρf = 1.5, μ = 0.05 Pa s: Re ≈ 24) settling from rest in a closed box
     8 d wide and 20 d tall, 4 cells per diameter, sub-cell volume fractions: its speed over the last
-    tenth of 0.5 s (terminal: within 1 % of the tenth before) within 10 % of Schiller–Naumann × the Di Felice wall factor of a tube of
-    the same area (measured +6 %; at Re ≈ 1–8 the walls hinder less than that factor says,
-    docs/coupling.md, bench/accuracy.py --settling)."""
+    tenth of 0.5 s (terminal: within 1 % of the tenth before) within 10 % of Schiller–Naumann × the
+    Di Felice wall factor of a tube of the same area (measured +6 %; at Re ≈ 1–8 the walls hinder
+    less than that factor says: docs/coupling.md, bench/accuracy.py --settling)."""
     from pmpm.reference import di_felice_wall_factor, terminal_velocity
 
     d, rho_p, rho_f, mu, cpd = 0.008, 1500.0, 1000.0, 0.05, 4
