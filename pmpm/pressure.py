@@ -146,7 +146,9 @@ class CellKSP:
         earlier addition (the particles' penalty, which changes every step). PETSc sees the matrix
         state change, so the preconditioner is set up again at the next solve."""
         if self._base_diagonal is None:
-            self._base_diagonal = self.matrix.getDiagonal().getArray().copy()
+            assembled = self.matrix.getDiagonal()
+            self._base_diagonal = assembled.getArray().copy()
+            assembled.destroy()
         diagonal = PETSc.Vec().createWithArray(self._base_diagonal + extra[:self.n_owned],
                                                size=(self.n_owned, self.mesh.n_global_cells), comm=self.comm)
         self.matrix.setDiagonal(diagonal, addv=PETSc.InsertMode.INSERT_VALUES)
