@@ -177,9 +177,8 @@ class Coupling:
         diagonal, target = np.zeros(n_owned), np.zeros((n_owned, 3))
         if not self.two_way or len(touched.cell) == 0:
             return diagonal, target
-        self.start_passes(state)
         p, c = touched.particle, touched.cell
-        weight = self.mesh.cell_volume[c] * self.penalty_rates(touched)
+        weight = self.mesh.cell_volume[c] * self.kappa            # (begin_step)
         rigid = self.patched_v[p] + np.cross(self.patched_omega[p], self.mesh.cell_center[c] - state.x[p])
         diagonal += np.bincount(c, weight, minlength=n_owned)
         for d in range(3):
@@ -208,6 +207,9 @@ class Coupling:
         self.start_passes(state)
         if not self.penalty:
             return
+        # the particles stay put during the flow step: their rates and smooth fractions hold for every pass
+        self.kappa = self.penalty_rates(touched)
+        self.under_mass = self.rho * self.smooth_fraction(state, touched) * self.mesh.cell_volume[touched.cell]
         self.internal_start = self.fluid_under(state, touched, u)      # particles new to the flow
         if self.internal_end is not None:
             known_ids, known, centre = self.internal_end
@@ -268,9 +270,8 @@ class Coupling:
         p, c = touched.particle, touched.cell
         r = self.mesh.cell_center[c] - state.x[p]
         m, inertia, free = state.mass, state.inertia, state.movable
-        under = self.rho * self.smooth_fraction(state, touched) * self.mesh.cell_volume[c]   # fluid_under's
         if not last:
-            kappa = self.penalty_rates(touched)
+            kappa = self.kappa
             rigid = self.patched_v[p] + np.cross(self.patched_omega[p], r)
             volume = self.rho * self.mesh.cell_volume[c]
             # two-way: u holds the penalty already (implicit); one-way: the fluid is not forced, and
@@ -281,7 +282,7 @@ class Coupling:
             # bound (diffusion to the neighbours, and ΔP, lower it), so the passes converge monotonically
             response = volume * kappa * dt / (1.0 + kappa_cell * dt)
             self.response, self.response_spin, (exchanged, internal) = self.particle_sums(
-                n, p, r, response, (volume * rate)[:, None] * (u[c] - rigid), under[:, None] * u[c])
+                n, p, r, response, (volume * rate)[:, None] * (u[c] - rigid), self.under_mass[:, None] * u[c])
             self.exchanged = exchanged                         # J of this pass's solve
             self.pending[:] = exchanged + self.under_scale[:, None] * internal - self.internal_start   # J + ΔP
             self.solved_v, self.solved_omega = self.patched_v, self.patched_omega
@@ -310,9 +311,15 @@ class Coupling:
         dv = (dt * external_force + momentum + damping[:, None] * (self.solved_v - state.v)) / (m + damping)[:, None]
         dw = (dt * external_torque + angular + damping_spin[:, None] * (self.solved_omega - state.omega)
               ) / (inertia + damping_spin)[:, None]
+        return self.finish_step(state, dv, dw, momentum, angular, dt, external_force, external_torque, step, time)
+
+    def finish_step(self, state, dv, dw, momentum, angular, dt, external_force, external_torque, step, time):
+        """The step's hydrodynamic force and torque on each particle from its velocity changes (free
+        particles) or the impulse exchanged (fixed and prescribed ones); ends the step's passes."""
+        free = state.movable
         self.pending = None
-        force = np.where(free[:, None], m[:, None] * dv / dt - external_force, momentum / dt)
-        torque = np.where(free[:, None], inertia[:, None] * dw / dt - external_torque, angular / dt)
+        force = np.where(free[:, None], state.mass[:, None] * dv / dt - external_force, momentum / dt)
+        torque = np.where(free[:, None], state.inertia[:, None] * dw / dt - external_torque, angular / dt)
         if self.explicit:
             self.watch_ringing(state, np.where(free[:, None], dv, 0.0), step, time)
         return force, torque
@@ -388,12 +395,7 @@ class Coupling:
         if not last:
             self.patched_v, self.patched_omega = new_v, new_omega
             return None
-        self.pending = None
-        force = np.where(free[:, None], m[:, None] * dv / dt - external_force, momentum / dt)
-        torque = np.where(free[:, None], inertia[:, None] * dw / dt - external_torque, angular / dt)
-        if self.explicit:
-            self.watch_ringing(state, np.where(free[:, None], dv, 0.0), step, time)
-        return force, torque
+        return self.finish_step(state, dv, dw, momentum, angular, dt, external_force, external_torque, step, time)
 
     def carry_fluid(self, state: ParticleState, touched: Touched, u: np.ndarray, fresh: np.ndarray) -> None:
         """Local (owned rows of ``u``). Particles new to the flow (present at the start, or just
