@@ -3,9 +3,11 @@ knobs (forcing, cells per diameter, volume-fraction rule, forcing passes, time s
 diffusion number ν dt/h²). Writes bench/results/accuracy.csv and accuracy.png and prints the table.
 
     .venv/bin/python bench/accuracy.py            # about 20 minutes on one core (--settling: that part only)
+    mpirun -n 2 .venv/bin/python bench/accuracy.py --settling --fine     # adds 8 cells per diameter
 
 The case is tests/test_coupling.py's: a fixed sphere in creeping flow (Re = 0.02) with the exact
-Stokes solution on every boundary face, so the reference is 6πμaU with no wall correction.
+Stokes solution on every boundary face, so the reference is 6πμaU with no wall correction. Then
+settling (``settling``): ten Cate et al.'s (2002) measured terminal speeds in their own box.
 """
 import csv
 import sys
@@ -18,7 +20,7 @@ from mpi4py import MPI
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests"))
-from test_coupling import simulation, stokes_run  # noqa: E402  (the validation cases, not copies)
+from test_coupling import stokes_run, ten_cate_run  # noqa: E402  (the validation cases, not copies)
 from pmpm.reference import di_felice_wall_factor, terminal_velocity  # noqa: E402
 
 KNOBS = [  # forcing, cells per diameter, rule, forcing passes, diffusion number ν dt/h²
@@ -72,50 +74,66 @@ def main():
     settling()
 
 
-SETTLING = [  # viscosity (Re ≈ 0.8, 8.5, 24), cells per diameter, box width and height in diameters, CFL, time
-    (0.4, 4, 6, 24, 0.1, 0.5), (0.1, 4, 6, 24, 0.3, 0.6), (0.1, 6, 6, 24, 0.3, 0.6), (0.1, 4, 12, 24, 0.3, 0.6),
-    (0.05, 4, 8, 32, 0.3, 0.8),
-]
+SETTLING_CELLS_ACROSS = (27, 40)        # 4 and 6 cells per diameter in ten Cate's box; --fine adds 53 (8)
 
 
-def settling(d=0.008, rho_p=1500.0, rho_f=1000.0):
-    """A sphere (ρp/ρf = 1.5) settling from rest in a tall closed box of liquid, released 6 d below
-    the lid: its speed at the end (terminal: it changes by < 0.5 % over the last fifth) against
-    Schiller–Naumann × the Di Felice (1996) wall factor for a tube of equal area. The time step
-    follows the CFL number at the reference speed. Writes bench/results/settling.csv."""
-    rows = []
-    for mu, cpd, widths, heights, cfl, end_time in SETTLING:
-        unbounded = terminal_velocity(rho_p, rho_f, mu, d)
-        reynolds = rho_f * unbounded * d / mu
-        h = d / cpd
-        n, m = int(round(widths * cpd)), int(round(heights * cpd))
-        dt = cfl * h / unbounded
-        width, height = n * h, m * h
-        start = time.perf_counter()
-        sim = simulation(MPI.COMM_SELF, Path(tempfile.mkdtemp()), L=width, H=height, n=n, m=m, mu=mu,
-                         rho_f=rho_f, rho_p=rho_p, radius=d / 2, rule="subcell", gravity="[0.0, 0.0, -9.81]",
-                         dt=dt, position=f"[{width / 2 + 0.1 * h}, {width / 2 - 0.2 * h}, {height - 6 * d}]")
-        steps = int(round(end_time / dt))
-        speeds = []
-        for _ in range(steps):
-            sim.advance(dt)
-            speeds.append(-sim.particles.v[0, 2])
-        speed, earlier = speeds[-1], speeds[-max(1, steps // 5)]
-        walled = unbounded * di_felice_wall_factor(d / (width * 2 / np.sqrt(np.pi)), reynolds)
-        rows.append(dict(reynolds=round(reynolds, 2), cells_per_diameter=cpd, box_diameters=widths,
-                         diffusion_number=round(mu / rho_f * dt / h ** 2, 3), speed=speed,
-                         last_fifth_change=speed / earlier - 1, speed_over_schiller_naumann=speed / unbounded,
-                         speed_over_walled_reference=speed / walled, wall_seconds=time.perf_counter() - start))
-        print(f"settling Re {reynolds:4.1f}, {cpd} cells/d, box {widths:2d} d × {heights} d, ν dt/h² "
-              f"{rows[-1]['diffusion_number']:.3f}: {speed:.4f} m/s (last fifth {100 * (speed / earlier - 1):+.2f} %) = "
-              f"{speed / unbounded:.3f} × Schiller–Naumann unbounded ({unbounded:.4f}), {speed / walled:.3f} × "
-              f"that with the Di Felice wall factor ({walled:.4f}); {rows[-1]['wall_seconds']:.0f} s", flush=True)
+def settling(comm=MPI.COMM_WORLD):
+    """ten Cate et al.'s (2002) four settling experiments (Re 1.5–32) in their box, at 4 and 6
+    cells per diameter (with --fine also 8; run that under mpirun), against the measured terminal
+    speeds; Schiller–Naumann unbounded and × the Di Felice (1996) tube factor (equal area) for
+    comparison. Writes bench/results/settling.csv and settling.png (speed against time)."""
+    from pmpm.reference import TEN_CATE_2002, TEN_CATE_BOX, TEN_CATE_SPHERE
+
+    d, rho_p, _ = TEN_CATE_SPHERE
+    cells = SETTLING_CELLS_ACROSS + ((53,) if "--fine" in sys.argv else ())
+    rows, curves = [], {}
+    for n in cells:
+        for experiment, (rho_f, mu, measured) in TEN_CATE_2002.items():
+            folder = Path(comm.bcast(tempfile.mkdtemp() if comm.rank == 0 else None))
+            start = time.perf_counter()
+            times, speeds, _ = ten_cate_run(comm, folder, experiment, n)
+            seconds = time.perf_counter() - start
+            fifth = max(1, len(speeds) // 5)
+            top = speeds.max()
+            unbounded = terminal_velocity(rho_p, rho_f, mu, d)
+            reynolds = rho_f * measured * d / mu
+            walled = unbounded * di_felice_wall_factor(d / (TEN_CATE_BOX[0] * 2 / np.sqrt(np.pi)), reynolds)
+            h = TEN_CATE_BOX[0] / n
+            rows.append(dict(experiment=experiment, reynolds=round(reynolds, 1), cells_per_diameter=round(d / h, 2),
+                             diffusion_number=round(mu / rho_f * (times[1] - times[0]) / h ** 2, 3),
+                             largest_speed=top, measured=measured, error=top / measured - 1,
+                             schiller_naumann_unbounded=unbounded, with_di_felice=walled,
+                             ranks=comm.size, wall_seconds=seconds))
+            curves[experiment, n] = (times, speeds)
+            if comm.rank == 0:
+                print(f"ten Cate {experiment} (Re {reynolds:4.1f}), {d / h:.2f} cells/d, ν dt/h² "
+                      f"{rows[-1]['diffusion_number']:.3f}: largest speed {top:.4f} m/s, measured {measured} "
+                      f"({100 * (top / measured - 1):+.1f} %); Schiller–Naumann {unbounded:.4f}, × Di Felice "
+                      f"{walled:.4f}; {seconds:.0f} s on {comm.size} rank(s)", flush=True)
+    if comm.rank:
+        return
     out = ROOT / "bench" / "results"
     out.mkdir(parents=True, exist_ok=True)
     with open(out / "settling.csv", "w", newline="") as f:
         writer = csv.DictWriter(f, fieldnames=list(rows[0]))
         writer.writeheader()
         writer.writerows(rows)
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    fig, ax = plt.subplots(figsize=(6, 4))
+    for k, (experiment, (_, _, measured)) in enumerate(TEN_CATE_2002.items()):
+        colour = f"C{k}"
+        ax.axhline(measured, color=colour, linestyle=":", linewidth=1)
+        for n, style in zip(cells, ("--", "-", "-.")):
+            times, speeds = curves[experiment, n]
+            ax.plot(times, speeds, style, color=colour, linewidth=1,
+                    label=f"{experiment}, {TEN_CATE_SPHERE[0] * n / TEN_CATE_BOX[0]:.0f} cells/d")
+    ax.set_xlabel("t (s)"); ax.set_ylabel("settling speed (m/s)")
+    ax.set_title("ten Cate et al. 2002 (dotted: measured terminal speed)", fontsize=9)
+    ax.legend(fontsize=6, ncol=2)
+    fig.tight_layout(); fig.savefig(out / "settling.png", dpi=120)
+    print(f"wrote {out / 'settling.csv'} and {out / 'settling.png'}")
 
 
 if __name__ == "__main__":

@@ -170,6 +170,10 @@ class FlowSolver:
             atol = 1e-15 * float(np.sqrt(self.comm.allreduce(np.sum((self.volume[:self.n_owned] / dt) ** 2))))
             self.momentum.append(CellKSP(self.mesh, matrix, "momentum_", "cg", "jacobi", 1e-8, "momentum",
                                          atol=atol))
+        # the pressure's atol, likewise: a flux imbalance of 1e-15 m/s over each cell's faces. At a
+        # steady state the right-hand side is round-off, and CG would break down on that noise
+        area = self.volume[:self.n_owned] ** (2 / 3)
+        self.pressure.set_atol(1e-15 * self.rho / dt * float(np.sqrt(self.comm.allreduce(np.sum(area ** 2)))))
         self._momentum_dt = dt
         self._penalized = False
         return self.momentum

@@ -154,6 +154,11 @@ class CellKSP:
         self.matrix.setDiagonal(diagonal, addv=PETSc.InsertMode.INSERT_VALUES)
         diagonal.destroy()
 
+    def set_atol(self, atol: float) -> None:
+        """The absolute tolerance on ‖b − A x‖, the other tolerances kept."""
+        rtol, _, divtol, max_it = self.ksp.getTolerances()
+        self.ksp.setTolerances(rtol=rtol, atol=atol, divtol=divtol, max_it=max_it)
+
     def _written(self) -> None:
         """Tell PETSc that the numpy arrays under b and x were written: PETSc caches a vector's norm
         until its state changes, and writes through numpy do not change it, so without this KSP

@@ -54,3 +54,18 @@ def di_felice_wall_factor(diameter_ratio: float, reynolds: float) -> float:
     measurements for Re from 0.01 to 200)."""
     exponent = (3.3 + 0.085 * reynolds) / (1 + 0.1 * reynolds)
     return ((1 - diameter_ratio) / (1 - 0.33 * diameter_ratio)) ** exponent
+
+
+# ten Cate, Nieuwstad, Derksen & Van den Akker (2002), "Particle imaging velocimetry experiments and
+# lattice-Boltzmann simulations on a single sphere settling under gravity", Phys. Fluids 14, 4012,
+# Table 1: a nylon sphere (d = 15 mm, ρ = 1120 kg/m³) released from rest with its centre 127.5 mm
+# above the floor of a closed box 100 × 100 × 160 mm of silicone oil. Per experiment: fluid density
+# (kg/m³), viscosity (Pa s), and the measured terminal (largest) settling speed (m/s).
+TEN_CATE_2002 = {
+    "E1": (970.0, 0.373, 0.038),   # Re 1.5
+    "E2": (965.0, 0.212, 0.060),   # Re 4.1
+    "E3": (962.0, 0.113, 0.091),   # Re 11.6
+    "E4": (960.0, 0.058, 0.128),   # Re 31.9
+}
+TEN_CATE_BOX = (0.100, 0.100, 0.160)      # m, the sphere released on the vertical axis
+TEN_CATE_SPHERE = (0.015, 1120.0, 0.1275)  # diameter (m), density (kg/m³), release height of the centre (m)
