@@ -74,7 +74,7 @@ def main():
     settling()
 
 
-SETTLING_CELLS_ACROSS = (27, 40)        # 4 and 6 cells per diameter in ten Cate's box; --fine adds 53 (8)
+SETTLING_CELLS_ACROSS = (27, 41)        # 4 and 6 cells per diameter in ten Cate's box; --fine adds 53 (8)
 
 
 def settling(comm=MPI.COMM_WORLD):

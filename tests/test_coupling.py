@@ -274,8 +274,8 @@ def test_settling_sphere_matches_ten_cate_experiments(tmp_path, experiment, end_
     6.7 d wide): the largest speed within 10 % of the measured terminal speed at 4 cells per
     diameter (measured −9 %, −5 %, −8 %): the mean speed over the last fifth of the run, which
     differs from that over the fifth before by less than 2 % (terminal; measured +0.3 … +1.1 %).
-    Their Re = 32 run needs 6 cells per diameter (−6 %; 4 give −12 %) and 8 cells per diameter
-    give −5 to −7 % for all four: bench/accuracy.py --settling, docs/coupling.md."""
+    Their Re = 32 run needs 6 cells per diameter (−9 %; 4 give −12 %); 8 cells per diameter give
+    −5 to −9 % for all four: bench/accuracy.py --settling, docs/coupling.md."""
     from pmpm.reference import TEN_CATE_2002
 
     _, speeds, _ = ten_cate_run(MPI.COMM_SELF, tmp_path, experiment, 27, end_time=end_time)
