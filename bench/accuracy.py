@@ -4,6 +4,7 @@ diffusion number ν dt/h²). Writes bench/results/accuracy.csv and accuracy.png 
 
     .venv/bin/python bench/accuracy.py            # about 20 minutes on one core (--settling: that part only)
     mpirun -n 2 .venv/bin/python bench/accuracy.py --settling --fine     # adds 8 cells per diameter
+    .venv/bin/python bench/accuracy.py --body-fitted   # the OpenFOAM reference for settling (≈ 4 min)
 
 The case is tests/test_coupling.py's: a fixed sphere in creeping flow (Re = 0.02) with the exact
 Stokes solution on every boundary face, so the reference is 6πμaU with no wall correction. Then
@@ -36,6 +37,8 @@ KNOBS = [  # forcing, cells per diameter, rule, forcing passes, diffusion number
 def main():
     if "--settling" in sys.argv:
         return settling()
+    if "--body-fitted" in sys.argv:
+        return body_fitted()
     out = ROOT / "bench" / "results"
     out.mkdir(parents=True, exist_ok=True)
     rows = []
@@ -79,10 +82,11 @@ SETTLING_CELLS_ACROSS = (27, 41)        # 4 and 6 cells per diameter in ten Cate
 
 def settling(comm=MPI.COMM_WORLD):
     """ten Cate et al.'s (2002) four settling experiments (Re 1.5–32) in their box, at 4 and 6
-    cells per diameter (with --fine also 8; run that under mpirun), against the measured terminal
-    speeds; Schiller–Naumann unbounded and × the Di Felice (1996) tube factor (equal area) for
-    comparison. Writes bench/results/settling.csv and settling.png (speed against time)."""
-    from pmpm.reference import TEN_CATE_2002, TEN_CATE_BOX, TEN_CATE_SPHERE
+    cells per diameter (with --fine also 8; run that under mpirun), against the body-fitted
+    Navier–Stokes terminal speeds (``body_fitted``) and the measured ones; Schiller–Naumann
+    unbounded and × the Di Felice (1996) tube factor (equal area) for comparison. Writes
+    bench/results/settling.csv and settling.png (speed against time)."""
+    from pmpm.reference import TEN_CATE_2002, TEN_CATE_BODY_FITTED, TEN_CATE_BOX, TEN_CATE_SPHERE
 
     d, rho_p, _ = TEN_CATE_SPHERE
     cells = SETTLING_CELLS_ACROSS + ((53,) if "--fine" in sys.argv else ())
@@ -101,13 +105,16 @@ def settling(comm=MPI.COMM_WORLD):
             h = TEN_CATE_BOX[0] / n
             rows.append(dict(experiment=experiment, reynolds=round(reynolds, 1), cells_per_diameter=round(d / h, 2),
                              diffusion_number=round(mu / rho_f * (times[1] - times[0]) / h ** 2, 3),
-                             largest_speed=top, measured=measured, error=top / measured - 1,
+                             largest_speed=top, body_fitted=TEN_CATE_BODY_FITTED[experiment],
+                             error=top / TEN_CATE_BODY_FITTED[experiment] - 1,
+                             measured=measured, error_to_measured=top / measured - 1,
                              schiller_naumann_unbounded=unbounded, with_di_felice=walled,
                              ranks=comm.size, wall_seconds=seconds))
             curves[experiment, n] = (times, speeds)
             if comm.rank == 0:
                 print(f"ten Cate {experiment} (Re {reynolds:4.1f}), {d / h:.2f} cells/d, ν dt/h² "
-                      f"{rows[-1]['diffusion_number']:.3f}: largest speed {top:.4f} m/s, measured {measured} "
+                      f"{rows[-1]['diffusion_number']:.3f}: largest speed {top:.4f} m/s, body-fitted "
+                      f"{TEN_CATE_BODY_FITTED[experiment]} ({100 * rows[-1]['error']:+.1f} %), measured {measured} "
                       f"({100 * (top / measured - 1):+.1f} %); Schiller–Naumann {unbounded:.4f}, × Di Felice "
                       f"{walled:.4f}; {seconds:.0f} s on {comm.size} rank(s)", flush=True)
     if comm.rank:
@@ -125,15 +132,43 @@ def settling(comm=MPI.COMM_WORLD):
     for k, (experiment, (_, _, measured)) in enumerate(TEN_CATE_2002.items()):
         colour = f"C{k}"
         ax.axhline(measured, color=colour, linestyle=":", linewidth=1)
+        ax.axhline(TEN_CATE_BODY_FITTED[experiment], color="0.5", linestyle="--", linewidth=0.8)
         for n, style in zip(cells, ("--", "-", "-.")):
             times, speeds = curves[experiment, n]
             ax.plot(times, speeds, style, color=colour, linewidth=1,
                     label=f"{experiment}, {TEN_CATE_SPHERE[0] * n / TEN_CATE_BOX[0]:.0f} cells/d")
     ax.set_xlabel("t (s)"); ax.set_ylabel("settling speed (m/s)")
-    ax.set_title("ten Cate et al. 2002 (dotted: measured terminal speed)", fontsize=9)
+    ax.set_title("ten Cate et al. 2002 (dotted: measured, dashed grey: body-fitted terminal speed)", fontsize=8)
     ax.legend(fontsize=6, ncol=2)
     fig.tight_layout(); fig.savefig(out / "settling.png", dpi=120)
     print(f"wrote {out / 'settling.csv'} and {out / 'settling.png'}")
+
+
+def body_fitted(slower=0.92):
+    """The body-fitted reference of ``pmpm.reference.TEN_CATE_BODY_FITTED``, recomputed with OpenFOAM
+    (bench/openfoam_sphere_duct.sh, spawns mpirun itself: run this serially, ≈ 4 minutes): for each
+    experiment the drag on the held sphere at the measured speed and at ``slower`` × it, and the
+    speed where the power law through them meets the weight less buoyancy."""
+    import os
+    import subprocess
+    from pmpm.reference import TEN_CATE_2002, TEN_CATE_BODY_FITTED, TEN_CATE_SPHERE
+
+    d, rho_p, _ = TEN_CATE_SPHERE
+    # this process has initialised MPI (mpi4py); the script's own mpirun must not see its variables
+    env = {k: v for k, v in os.environ.items() if not k.startswith(("OMPI_", "PMIX_", "PMI_"))}
+    for experiment, (rho_f, mu, measured) in TEN_CATE_2002.items():
+        speeds = np.array([measured, slower * measured])
+        drags = []
+        for speed in speeds:
+            line = subprocess.run([str(ROOT / "bench" / "openfoam_sphere_duct.sh"), str(rho_f), str(mu), f"{speed:.6g}"],
+                                  check=True, capture_output=True, text=True, env=env).stdout.split()
+            drags.append(float(dict(item.split("=") for item in line[1:])["drag"]))
+        weight = (rho_p - rho_f) * np.pi * d ** 3 / 6 * 9.81
+        exponent = np.log(drags[0] / drags[1]) / np.log(speeds[0] / speeds[1])
+        terminal = speeds[1] * (weight / drags[1]) ** (1 / exponent)
+        print(f"ten Cate {experiment}: body-fitted drag {drags[0]:.4e} N at {speeds[0]:.4g} m/s, {drags[1]:.4e} N at "
+              f"{speeds[1]:.4g} m/s; weight less buoyancy {weight:.4e} N → terminal speed {terminal:.4f} m/s "
+              f"(stored {TEN_CATE_BODY_FITTED[experiment]}, measured {measured})", flush=True)
 
 
 if __name__ == "__main__":
