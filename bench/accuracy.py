@@ -4,11 +4,12 @@ diffusion number ν dt/h²). Writes bench/results/accuracy.csv and accuracy.png 
 
     .venv/bin/python bench/accuracy.py            # about 20 minutes on one core (--settling: that part only)
     mpirun -n 2 .venv/bin/python bench/accuracy.py --settling --fine     # adds 8 cells per diameter
-    .venv/bin/python bench/accuracy.py --body-fitted   # the OpenFOAM reference for settling (≈ 4 min)
+    .venv/bin/python bench/accuracy.py --body-fitted   # the OpenFOAM reference for settling (≈ 3 min)
 
 The case is tests/test_coupling.py's: a fixed sphere in creeping flow (Re = 0.02) with the exact
 Stokes solution on every boundary face, so the reference is 6πμaU with no wall correction. Then
-settling (``settling``): ten Cate et al.'s (2002) measured terminal speeds in their own box.
+settling (``settling``) in ten Cate et al.'s (2002) box, against a body-fitted OpenFOAM solution
+(``body_fitted``) and their measured terminal speeds.
 """
 import csv
 import sys
@@ -97,7 +98,6 @@ def settling(comm=MPI.COMM_WORLD):
             start = time.perf_counter()
             times, speeds, _ = ten_cate_run(comm, folder, experiment, n)
             seconds = time.perf_counter() - start
-            fifth = max(1, len(speeds) // 5)
             top = speeds.max()
             unbounded = terminal_velocity(rho_p, rho_f, mu, d)
             reynolds = rho_f * measured * d / mu
@@ -146,7 +146,7 @@ def settling(comm=MPI.COMM_WORLD):
 
 def body_fitted(slower=0.92):
     """The body-fitted reference of ``pmpm.reference.TEN_CATE_BODY_FITTED``, recomputed with OpenFOAM
-    (bench/openfoam_sphere_duct.sh, spawns mpirun itself: run this serially, ≈ 4 minutes): for each
+    (bench/openfoam_sphere_duct.sh, spawns mpirun itself: run this serially, ≈ 3 minutes): for each
     experiment the drag on the held sphere at the measured speed and at ``slower`` × it, and the
     speed where the power law through them meets the weight less buoyancy."""
     import os
