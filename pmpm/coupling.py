@@ -149,22 +149,25 @@ class Coupling:
             alpha[part] = inside.mean(axis=1)
         return alpha
 
+    def alpha_per_cell(self, touched: Touched) -> np.ndarray:
+        """(n_owned,) Σ α over the particles touching each owned cell (may exceed 1 where they overlap)."""
+        return np.bincount(touched.cell, touched.alpha, minlength=self.mesh.n_owned_cells)
+
     def shared_alpha(self, touched: Touched) -> np.ndarray:
         """α of each (particle, cell) pair, scaled down where overlapping particles cover a cell
         more than once, so that a cell is never patched beyond its own volume."""
-        total = np.bincount(touched.cell, touched.alpha, minlength=self.mesh.n_owned_cells)
+        total = self.alpha_per_cell(touched)
         return touched.alpha / np.maximum(total[touched.cell], 1.0)
 
     def volume_fraction(self, touched: Touched) -> np.ndarray:
         """(n_owned,) particle volume fraction per owned cell, at most 1."""
-        total = np.bincount(touched.cell, touched.alpha, minlength=self.mesh.n_owned_cells)
-        return np.minimum(total, 1.0)
+        return np.minimum(self.alpha_per_cell(touched), 1.0)
 
     # -- 2a. the penalty (the default forcing) ------------------------------------------------
     def penalty_rates(self, touched: Touched) -> np.ndarray:
         """κ (1/s) of each (particle, cell) pair: the cell's rate κ(α) = s α/(1 − α) ν/h² with α the
         cell's total volume fraction, shared among the particles in it by their α."""
-        total = np.bincount(touched.cell, touched.alpha, minlength=self.mesh.n_owned_cells)[touched.cell]
+        total = self.alpha_per_cell(touched)[touched.cell]
         covered = np.minimum(total, 1.0)
         strength = np.minimum(self.penalty_strength * covered / np.maximum(1.0 - covered, 1e-300),
                               PENALTY_CAP)
@@ -210,7 +213,7 @@ class Coupling:
         # the particles stay put during the flow step: their rates and smooth fractions hold for every pass
         self.kappa = self.penalty_rates(touched)
         self.under_mass = self.rho * self.smooth_fraction(state, touched) * self.mesh.cell_volume[touched.cell]
-        self.internal_start = self.fluid_under(state, touched, u)      # particles new to the flow
+        self.internal_start = self.fluid_under(state, touched, u, self.under_mass)   # particles new to the flow
         if self.internal_end is not None:
             known_ids, known, centre = self.internal_end
             position = np.minimum(np.searchsorted(known_ids, state.id), max(len(known_ids) - 1, 0))
@@ -235,14 +238,14 @@ class Coupling:
         total = np.bincount(touched.cell, fraction, minlength=self.mesh.n_owned_cells)
         return fraction / np.maximum(total[touched.cell], 1.0)
 
-    def fluid_under(self, state, touched, u, x=None) -> np.ndarray:
-        """Collective. (n, 6): the momentum of the fluid under each particle, Σ f ρ V u with f the
-        smooth fraction, and its moment r × about the centre, scaled to the sphere's own volume
-        (``under_scale``: Σ f V wobbles by ~1e-3 as the sphere moves, which in a uniform stream gave
-        a particle an impulse out of nothing). ``x``: the centres, if not where ``state`` has them."""
+    def fluid_under(self, state, touched, u, mass, x=None) -> np.ndarray:
+        """Collective. (n, 6): the momentum of the fluid under each particle, Σ m u over its pairs,
+        ``mass`` m = ρ f V with f the smooth fraction (``under_mass`` for this step's pairs), and its
+        moment r × about the centre, scaled to the sphere's own volume (``under_scale``: Σ f V
+        wobbles by ~1e-3 as the sphere moves, which in a uniform stream gave a particle an impulse
+        out of nothing). ``x``: the centres, if not where ``state`` has them."""
         p, c = touched.particle, touched.cell
         x = state.x if x is None else x
-        mass = self.rho * self.smooth_fraction(state, touched, x) * self.mesh.cell_volume[c]
         covered, _, (momentum,) = self.particle_sums(len(state), p, self.mesh.cell_center[c] - x[p], mass,
                                                      mass[:, None] * u[c])
         self.under_scale = self.rho * state.volume / np.maximum(covered, np.finfo(float).tiny)
@@ -297,7 +300,7 @@ class Coupling:
             self.patched_omega = np.where(free[:, None], omega, state.omega)
             return None
         # after the projection: J of the last solve, ΔP with the projected velocities
-        internal_end = self.fluid_under(state, touched, u)
+        internal_end = self.fluid_under(state, touched, u, self.under_mass)
         order = np.argsort(state.id)
         self.internal_end = (state.id[order], internal_end[order], state.x[order].copy())
         impulse = self.exchanged + internal_end - self.internal_start

@@ -333,7 +333,8 @@ def test_momentum_of_fluid_and_particle_is_conserved(tmp_path, request, forcing)
         mass = flow.rho * coupling.shared_alpha(touched) * mesh.cell_volume[c]
         if forcing == "patch":
             return (mass[:, None] * (state.v[p] + np.cross(state.omega[p], mesh.cell_center[c] - x[p]))).sum(axis=0)
-        return coupling.fluid_under(state, touched, sim.fluid_state.u, x)[0, :3]
+        under = flow.rho * coupling.smooth_fraction(state, touched, x) * mesh.cell_volume[c]
+        return coupling.fluid_under(state, touched, sim.fluid_state.u, under, x)[0, :3]
 
     start = state.mass[0] * state.v[0]
     scale = np.linalg.norm(start)
