@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .arrays import rotate
 from .errors import CaseError
 
 MOTION_CODES = {"free": 0, "fixed": 1, "prescribed": 2}
@@ -97,16 +98,6 @@ def initial_particles(case) -> NewParticles:
     return NewParticles.concatenate(parts)
 
 
-def rotation_matrix(angle_vector: np.ndarray) -> np.ndarray:
-    """Rotation by |angle_vector| radians about its direction (Rodrigues)."""
-    angle = float(np.linalg.norm(angle_vector))
-    if angle == 0.0:
-        return np.eye(3)
-    k = np.asarray(angle_vector) / angle
-    cross = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
-    return np.eye(3) + np.sin(angle) * cross + (1 - np.cos(angle)) * cross @ cross
-
-
 class Injector:
     """One [[injection]] table: releases ``count`` particles at start, start + interval, ... <= stop."""
 
@@ -149,8 +140,7 @@ class Injector:
             v = np.tile(s.velocity, (n, 1))
         # a moving / rotating injection location (Table 1): the release point follows a rigid motion
         center = np.array(s.rotation_center)
-        x = center + (x - center) @ rotation_matrix(np.array(s.location_angular_velocity) * t).T \
-            + np.array(s.location_velocity) * t
+        x = center + rotate(x - center, np.array(s.location_angular_velocity) * t) + np.array(s.location_velocity) * t
         return NewParticles(x, v, np.tile(s.angular_velocity, (n, 1)), np.full(n, s.radius),
                             np.full(n, s.density), np.zeros(n, np.int8))
 

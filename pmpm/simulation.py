@@ -125,6 +125,7 @@ class Simulation:
         self.injectors = build_injectors(case)
         self.walls = build_walls(case, mesh) if (case.collisions or case.field_forces or case.deposition) else None
         self.settings = collision_settings(case) if case.collisions else None
+        self.contact_memory = None  # the contact solver's impulses from the last step (ContactMemory)
         self.flow = self.fluid_state = self.coupling = None
         self.fluid_density = 0.0
         if case.fluid is not None:
@@ -238,8 +239,10 @@ class Simulation:
             with Timer(self.times, "collisions" if self.settings else "motion"):
                 accelerate(state, force, torque, dt / substeps)
                 if self.settings is not None:
-                    stats = advance_with_collisions(state, self.walls, dt / substeps, self.settings)
-                    for key, value in stats.items():
+                    result = advance_with_collisions(state, self.walls, dt / substeps, self.settings,
+                                                     self.contact_memory)
+                    self.walls, self.contact_memory = result.walls, result.memory
+                    for key, value in result.stats.items():
                         self.collision_totals[key] = self.collision_totals.get(key, 0) + int(value)
                 else:
                     free = state.motion != 1

@@ -1,0 +1,72 @@
+"""Broad search: the contacts that may act within a step, as a ``ContactRecord``.
+
+Particle pairs come from a k-d tree of the centres (every pair closer than 2 r_max + reach), wall
+candidates from the walls' own search (bounding spheres of the triangles, grown by how far each
+moves in the step); the compiled narrow phase (``narrow``) keeps those whose gap is within reach
+and computes gap, normal and contact time. ``reach`` bounds how far two bodies can close in a
+step: twice the largest speed × dt between particles, once it (plus the wall's own travel) for a
+wall; a particle that becomes faster within the step makes the solver search again
+(``solver.advance_with_collisions``).
+"""
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from .record import ContactRecord
+from .walls import Walls
+
+
+def wall_arrays(walls: Walls) -> tuple:
+    """The Walls' arrays in the order the compiled kernels take them (``narrow``)."""
+    arrays = (walls.a, walls.b, walls.c, walls.normal, walls.center, walls.velocity, walls.angular_velocity)
+    return tuple(np.ascontiguousarray(a, float) for a in arrays) + (
+        np.ascontiguousarray(walls.rigid, np.bool_), np.ascontiguousarray(walls.moves, np.bool_),
+        np.ascontiguousarray(walls.deposition, np.bool_))
+
+
+def no_walls() -> tuple:
+    z3 = np.zeros((0, 3))
+    zb = np.zeros(0, np.bool_)
+    return (z3, z3, z3, z3, z3, z3, z3, zb, zb, zb)
+
+
+def candidate_pairs(x: np.ndarray, radius: np.ndarray, reach: float) -> np.ndarray:
+    """(k, 2) int64 pairs i < j of centres closer than 2 r_max + ``reach`` (m)."""
+    if len(x) < 2:
+        return np.zeros((0, 2), np.int64)
+    return cKDTree(x).query_pairs(2.0 * float(radius.max()) + reach, output_type="ndarray").astype(np.int64)
+
+
+def find_contacts(bodies, walls: Walls | None, dt: float, reach: float, restitution: float, friction: float,
+                  narrow) -> ContactRecord:
+    """The step's contacts (see the module's docstring).
+
+    Parameters
+    ----------
+    bodies : solver.Bodies at the step's start (rows 0..n−1 particles, row n the world).
+    walls : the walls at the step's start, or None.
+    dt : s; reach : m, how far two particles can close in the step.
+    restitution, friction : particle–particle coefficients.
+    narrow : the compiled narrow-phase module.
+    """
+    n = len(bodies.radius) - 1
+    x, v, radius, free = bodies.x, bodies.v, bodies.radius, bodies.free
+    pairs = candidate_pairs(x[:n], radius[:n], reach)
+    keep, normal, gap, time = narrow.pair_contacts(pairs[:, 0], pairs[:, 1], x, v, radius, free, reach, dt)
+    k = len(pairs)
+    parts = [ContactRecord(pairs[keep, 0], pairs[keep, 1], np.full(int(keep.sum()), -1), normal[keep], gap[keep],
+                           np.ones(int(keep.sum()), bool), time[keep], np.zeros((int(keep.sum()), 3)),
+                           np.full(k, restitution)[keep], np.full(k, friction)[keep], np.zeros(k)[keep])]
+    mobile = np.flatnonzero(free[:n])
+    if walls is not None and len(walls) and len(mobile):
+        travel = walls.travel(dt)
+        p, tri = walls.near(x[mobile], radius[mobile] + 0.5 * reach, extra=travel)
+        p = mobile[p]
+        keep, normal, gap, face, u_wall, time = narrow.wall_contacts(p, tri, x, v, radius, wall_arrays(walls),
+                                                                     travel, 0.5 * reach, dt)
+        p, tri = p[keep], tri[keep]
+        parts.append(ContactRecord(p, np.full(len(p), n), tri, normal[keep], gap[keep], face[keep], time[keep],
+                                   u_wall[keep], walls.restitution[tri], walls.friction[tri],
+                                   walls.rolling_friction[tri]))
+    return ContactRecord.concatenate(parts)

@@ -1,0 +1,227 @@
+"""Wall triangles: geometry, coefficients and motion; the search for triangles near points.
+
+A wall is any mesh boundary of type "wall" (or not listed in the case): its faces, split into
+triangles with the normal into the domain. Each triangle carries its restitution, friction,
+rolling friction, its velocity V and angular velocity Ω about ``center`` (the wall velocity at a
+point p is V + Ω × (p − center)), whether it moves rigidly (a paddle: the triangle itself moves)
+or only its surface moves (a conveyor, a lid: the triangle stays), and whether particles that
+touch it are deposited. A ``Walls`` is not changed after it is built: a rigid wall that moved is
+a new ``Walls`` (``moved``), so what is cached on one (its search tree) stays true.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from functools import cached_property
+from itertools import chain
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from ..arrays import cross, rotate
+from .settings import (DEFAULT_FRICTION, DEFAULT_RESTITUTION, DEFAULT_ROLLING_FRICTION,
+                       collision_coefficients)
+
+
+@dataclass(frozen=True, eq=False)
+class Walls:
+    """Planar wall triangles (SI), each with its own coefficients and motion.
+
+    ``a, b, c`` vertices and ``normal`` (unit, into the domain) are (m, 3); ``boundary`` (m,) the
+    boundary index; ``restitution``, ``friction``, ``rolling_friction`` (m,); ``velocity`` (m/s),
+    ``angular_velocity`` (rad/s) and ``center`` (m) (m, 3) give the wall velocity
+    V + Ω × (p − center) at a point p; ``rigid`` (m,) bool: the triangle itself moves (a paddle) —
+    else only its surface moves (a conveyor, a lid); ``deposition`` (m,) bool: particles stick.
+    Fields are not reassigned after construction (a moved wall is a new object, see ``moved``).
+    """
+
+    a: np.ndarray
+    b: np.ndarray
+    c: np.ndarray
+    normal: np.ndarray
+    boundary: np.ndarray
+    restitution: np.ndarray
+    friction: np.ndarray
+    rolling_friction: np.ndarray
+    velocity: np.ndarray
+    angular_velocity: np.ndarray
+    center: np.ndarray
+    rigid: np.ndarray
+    deposition: np.ndarray
+    names: tuple = ()  # boundary names, indexed by ``boundary``
+
+    def __len__(self) -> int:
+        return len(self.boundary)
+
+    @classmethod
+    def from_triangles(cls, triangles, normal=None, boundary=None, restitution=DEFAULT_RESTITUTION,
+                       friction=DEFAULT_FRICTION, rolling_friction=DEFAULT_ROLLING_FRICTION,
+                       velocity=(0.0, 0.0, 0.0), angular_velocity=(0.0, 0.0, 0.0), center=(0.0, 0.0, 0.0),
+                       rigid=False, deposition=False, names=()) -> "Walls":
+        """Walls from (m, 3, 3) vertices; scalars and 3-vectors are broadcast to every triangle.
+
+        Without ``normal``, the normal follows the winding: (b − a) × (c − a), normalised.
+        """
+        tri = np.asarray(triangles, float).reshape(-1, 3, 3)
+        m = len(tri)
+        a, b, c = tri[:, 0].copy(), tri[:, 1].copy(), tri[:, 2].copy()
+        if normal is None:
+            normal = cross(b - a, c - a)
+        normal = np.broadcast_to(np.asarray(normal, float), (m, 3))
+        normal = normal / np.linalg.norm(normal, axis=1, keepdims=True)
+
+        def per(value, shape, dtype=float):
+            return np.array(np.broadcast_to(np.asarray(value, dtype), (m, *shape)))
+
+        return cls(a, b, c, normal.copy(), per(0 if boundary is None else boundary, (), np.int64),
+                   per(restitution, ()), per(friction, ()), per(rolling_friction, ()),
+                   per(velocity, (3,)), per(angular_velocity, (3,)), per(center, (3,)),
+                   per(rigid, (), bool), per(deposition, (), bool), tuple(names))
+
+    # -- motion -----------------------------------------------------------------------------------
+    @cached_property
+    def moves(self) -> np.ndarray:
+        """(m,) bool: rigid triangles with a velocity or an angular velocity."""
+        return self.rigid & (self.velocity.any(1) | self.angular_velocity.any(1))
+
+    def moved(self, dt: float) -> "Walls":
+        """The walls after ``dt``: rigid triangles rotated by Ω dt about their centre (Rodrigues) and
+        translated by V dt, their centres translated; ``self`` if none moves."""
+        k = np.flatnonzero(self.moves)
+        if len(k) == 0:
+            return self
+        theta = self.angular_velocity[k] * dt
+        shift = self.velocity[k] * dt
+        centre = self.center[k]
+        a, b, c, normal, center = (array.copy() for array in (self.a, self.b, self.c, self.normal, self.center))
+        for moved, old in ((a, self.a), (b, self.b), (c, self.c)):
+            moved[k] = rotate(old[k] - centre, theta) + centre + shift
+        normal[k] = rotate(self.normal[k], theta)
+        center[k] = centre + shift
+        return replace(self, a=a, b=b, c=c, normal=normal, center=center)
+
+    def travel(self, dt: float) -> np.ndarray:
+        """(m,) the farthest any point of each triangle moves in ``dt`` (m): (|V| + |Ω| arm) dt for
+        moving rigid triangles, arm the farthest vertex from the centre; 0 for the others."""
+        arm = np.max([np.linalg.norm(v - self.center, axis=1) for v in (self.a, self.b, self.c)], axis=0)
+        speed = np.linalg.norm(self.velocity, axis=1) + np.linalg.norm(self.angular_velocity, axis=1) * arm
+        return np.where(self.moves, speed * dt, 0.0)
+
+    # -- search -----------------------------------------------------------------------------------
+    @cached_property
+    def centroid(self) -> np.ndarray:
+        """(m, 3) triangle centroids (m)."""
+        return (self.a + self.b + self.c) / 3.0
+
+    @cached_property
+    def bounding_radius(self) -> np.ndarray:
+        """(m,) distance from each centroid to its farthest vertex (m)."""
+        return np.max([np.linalg.norm(v - self.centroid, axis=1) for v in (self.a, self.b, self.c)], axis=0)
+
+    @cached_property
+    def tree(self) -> cKDTree:
+        """k-d tree of the centroids."""
+        return cKDTree(self.centroid)
+
+    def near(self, points: np.ndarray, reach, extra=None) -> tuple[np.ndarray, np.ndarray]:
+        """(point, triangle) index pairs whose spheres meet: |p − centroid| <= reach_p +
+        bounding radius + ``extra`` (per triangle, m; e.g. its travel in a step), sorted by point,
+        then triangle. ``reach`` (m) is a scalar or one value per point."""
+        none = np.zeros(0, np.int64)
+        if len(points) == 0 or len(self) == 0:
+            return none, none
+        reach = np.broadcast_to(np.asarray(reach, float), len(points))
+        bound = self.bounding_radius if extra is None else self.bounding_radius + extra
+        if len(points) > 64:  # many points: one search per triangle, within its own bound
+            k, p = flatten(cKDTree(points).query_ball_point(self.centroid, bound + reach.max()))
+        else:
+            p, k = flatten(self.tree.query_ball_point(points, reach + bound.max()))
+        d = points[p] - self.centroid[k]
+        near = np.flatnonzero(np.sum(d * d, axis=1) <= (reach[p] + bound[k]) ** 2)
+        near = near[np.lexsort((k[near], p[near]))]
+        return p[near], k[near]
+
+
+def flatten(found) -> tuple[np.ndarray, np.ndarray]:
+    """A k-d tree's per-point lists of neighbours as (point, neighbour) index arrays."""
+    sizes = np.fromiter(map(len, found), np.int64, len(found))
+    row = np.repeat(np.arange(len(found)), sizes)
+    return row, np.fromiter(chain.from_iterable(found), np.int64, int(sizes.sum()))
+
+
+def closest_points_on_triangles(p, a, b, c) -> tuple[np.ndarray, np.ndarray]:
+    """Closest point of each triangle (a, b, c) to each point p, all (k, 3).
+
+    Returns the points (k, 3) and a (k,) bool, true where the closest point is inside the face
+    (not on an edge or a vertex). Voronoi regions of the vertices, edges and face in turn
+    (the compiled ``contact_times.closest_on_triangle`` is the same algorithm for one point).
+    """
+    ab, ac, ap = b - a, c - a, p - a
+    bp, cp = p - b, p - c
+    d1, d2 = np.sum(ab * ap, 1), np.sum(ac * ap, 1)
+    d3, d4 = np.sum(ab * bp, 1), np.sum(ac * bp, 1)
+    d5, d6 = np.sum(ab * cp, 1), np.sum(ac * cp, 1)
+    va, vb, vc = d3 * d6 - d5 * d4, d5 * d2 - d1 * d6, d1 * d4 - d3 * d2
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s_ab = d1 / (d1 - d3)
+        s_ac = d2 / (d2 - d6)
+        s_bc = (d4 - d3) / ((d4 - d3) + (d5 - d6))
+        total = va + vb + vc
+        v, w = vb / total, vc / total
+    in_a = (d1 <= 0) & (d2 <= 0)
+    in_b = (d3 >= 0) & (d4 <= d3)
+    on_ab = (vc <= 0) & (d1 >= 0) & (d3 <= 0)
+    in_c = (d6 >= 0) & (d5 <= d6)
+    on_ac = (vb <= 0) & (d2 >= 0) & (d6 <= 0)
+    on_bc = (va <= 0) & (d4 - d3 >= 0) & (d5 - d6 >= 0)
+    regions = [in_a, in_b, on_ab, in_c, on_ac, on_bc]
+    points = [a, b, a + s_ab[:, None] * ab, c, a + s_ac[:, None] * ac, b + s_bc[:, None] * (c - b)]
+    face = ~np.any(regions, axis=0)
+    q = a + v[:, None] * ab + w[:, None] * ac
+    for region, point in zip(regions[::-1], points[::-1]):  # the first true region wins
+        q = np.where(region[:, None], point, q)
+    return q, face
+
+
+def wall_distances(x: np.ndarray, walls: Walls, reach) -> np.ndarray:
+    """(n,) distance from each point to the nearest wall triangle within ``reach`` (inf beyond)."""
+    p, k = walls.near(x, reach)
+    out = np.full(len(x), np.inf)
+    if len(p):
+        q, _ = closest_points_on_triangles(x[p], walls.a[k], walls.b[k], walls.c[k])
+        d = np.linalg.norm(x[p] - q, axis=1)
+        order = np.lexsort((d, p))  # nearest first within each point
+        first = np.ones(len(p), bool)
+        first[1:] = p[order][1:] != p[order][:-1]
+        out[p[order][first]] = d[order][first]
+    return out
+
+
+def build_walls(case, mesh) -> Walls:
+    """Collective. The wall triangles of the case's mesh with their coefficients and motion.
+
+    Wall boundaries: those of type "wall" and those not listed in the case (a fixed wall).
+    Coefficients default to [collisions] (or 0.9 / 0.3 / 0.0 without it); [deposition] zones
+    name the walls where particles stick.
+    """
+    names = [name for name in mesh.boundary_names
+             if name not in case.boundaries or case.boundaries[name].type == "wall"]
+    triangles, boundary, normal = mesh.boundary_triangles(names)
+    walls = Walls.from_triangles(np.reshape(triangles, (-1, 3, 3)), normal=np.reshape(normal, (-1, 3)),
+                                 boundary=boundary, names=tuple(mesh.boundary_names))
+    defaults = collision_coefficients(case)
+    zones = set(case.deposition.zones) if case.deposition is not None else set()
+    for index, name in enumerate(mesh.boundary_names):
+        rows = walls.boundary == index
+        if not rows.any():
+            continue
+        section = case.boundaries.get(name)
+        for key in ("restitution", "friction", "rolling_friction"):
+            value = getattr(section, key) if section is not None else None
+            getattr(walls, key)[rows] = defaults[key] if value is None else value
+        if section is not None:
+            walls.velocity[rows] = section.velocity
+            walls.angular_velocity[rows] = section.angular_velocity
+            walls.center[rows] = section.center
+            walls.rigid[rows] = section.motion == "rigid"
+        walls.deposition[rows] = name in zones
+    return walls
