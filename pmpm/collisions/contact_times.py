@@ -22,38 +22,38 @@ from .settings import APPROACH_TOL, TOUCH_TOL
 INF = np.inf
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def vec(array, row):
     """Row ``row`` of an (n, 3) array as a tuple."""
     return (array[row, 0], array[row, 1], array[row, 2])
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def dot(a, b):
     return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def add(a, b):
     return (a[0] + b[0], a[1] + b[1], a[2] + b[2])
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def sub(a, b):
     return (a[0] - b[0], a[1] - b[1], a[2] - b[2])
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def scale(a, s):
     return (a[0] * s, a[1] * s, a[2] * s)
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def cross(a, b):
     return (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def norm(a):
     return np.sqrt(a[0] * a[0] + a[1] * a[1] + a[2] * a[2])
 
@@ -87,7 +87,7 @@ def closest_on_triangle(p, a, b, c):
     return add(a, add(scale(ab, vb / total), scale(ac, vc / total))), True
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def rotated(vector, unit, cos, sin):
     """Rodrigues: ``vector`` rotated about the unit axis by the angle of (cos, sin)."""
     return add(add(scale(vector, cos), scale(cross(unit, vector), sin)), scale(unit, dot(unit, vector) * (1.0 - cos)))

@@ -28,7 +28,7 @@ def dense_step(bodies, record, rows, warm_n, warm_t, settings, dt, walls, kernel
     impulses = kernels.impulses
     n, m = len(bodies.radius) - 1, len(record)
     first, second, triangle = record.first, record.second, record.triangle
-    rows = rows[~kernels.narrow.parallel_duplicates(rows, first, triangle, record.face, record.gap, record.normal)]
+    rows = rows[~kernels.narrow.parallel_duplicates(rows, first, triangle, record.gap, record.normal, bodies.radius)]
     wall = triangle >= 0
     r_first = bodies.radius[first]
     r_second = np.where(wall, 0.0, bodies.radius[second])

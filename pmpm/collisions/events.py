@@ -37,7 +37,7 @@ RESTING_MODE, CAPPED_MODE = 0, 1
 NONE, IMPACT, DEPOSIT, SLOW, RESCHEDULE = range(5)
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def position(x, v, clock, p, t):
     """Where body p is at time t (it moves at v since its clock)."""
     s = t - clock[p]
@@ -341,7 +341,8 @@ def heap_pop(heap, size):
 
 
 @njit(cache=True)
-def run_events(bodies, contacts, walls, memory, dt, rest_speed, max_events, speed_bound, sweeps, tol, stats):
+def run_events(bodies, contacts, walls, memory, dt, rest_speed, max_events, speed_bound, sweeps, settle_sweeps, tol,
+               stats):
     """The step (see the module's docstring); every body ends at time ``dt``. Returns the largest
     speed a free particle reached; if it is above ``speed_bound`` (the speed the broad search
     assumed), the loop stopped there and the step is unfinished (the caller searches again).
@@ -353,6 +354,7 @@ def run_events(bodies, contacts, walls, memory, dt, rest_speed, max_events, spee
     scheduled = np.zeros(m, np.int64)
     batch = 0
     params = (dt, rest_speed, sweeps, tol)
+    inside = (dt, rest_speed, settle_sweeps, tol)  # the settles after slow impacts
     end = dt * (1 - 1e-9)  # contacts at the very end of the step are the next step's
     quiet = QUIET * rest_speed
     no_seeds = np.zeros(0, np.int64)
@@ -404,7 +406,7 @@ def run_events(bodies, contacts, walls, memory, dt, rest_speed, max_events, spee
                 if q < n and free[q]:
                     seeds[count] = q
                     count += 1
-            n_changed = settle(t, seeds[:count], RESTING_MODE, False, params, bodies, contacts, walls, work, memory,
+            n_changed = settle(t, seeds[:count], RESTING_MODE, False, inside, bodies, contacts, walls, work, memory,
                                stats)[1]
         # the changed bodies: new stamps first, then each of their contacts queued once
         batch += 1

@@ -54,7 +54,7 @@ def apply_impulse(a, b, J, n, r_a, r_b, inv_m, inv_i, v, w):
         w[b, d] -= wb * c[d]
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def relative_velocity(a, b, n, r_a, r_b, u_wall, v, w):
     """Contact-point velocity of body a relative to body b (and the wall surface u_wall)."""
     s = (r_a * w[a, 0] + r_b * w[b, 0], r_a * w[a, 1] + r_b * w[b, 1], r_a * w[a, 2] + r_b * w[b, 2])
@@ -262,15 +262,15 @@ def limit_energy(bodies, inv_m, inv_i, v, w, v0, w0, energy_before, tol):
 def separate(rows, first, second, normal, gap, floor, inv_m, x, sweeps, tol):
     """Remove overlaps by moving positions only (velocities untouched, so no kinetic energy is
     made): Gauss–Seidel on displacement impulses p_c >= 0 along the normals, mass-weighted (a
-    body of infinite mass stays), until every contact's gap + (δ_i − δ_j)·n reaches ``floor[c]``
-    (m; 0 for an overlap to remove, the gap itself for one within tolerance) within ``tol`` (m),
-    or ``sweeps`` sweeps. ``x`` is updated in place; returns the sweeps made."""
+    body of infinite mass stays), until no contact's gap + (δ_i − δ_j)·n is below ``floor[c]``
+    (m; 0 for an overlap to remove, the gap itself for one within tolerance) by more than
+    ``tol`` (m), or ``sweeps`` sweeps. ``x`` is updated in place; returns the sweeps made."""
     count = len(rows)
     push = np.zeros(count)
     moved = np.zeros((x.shape[0], 3))
     done = 0
     for s in range(sweeps):
-        largest = 0.0
+        worst = 0.0
         for r in range(count):
             c = rows[r]
             a, b = first[c], second[c]
@@ -279,15 +279,15 @@ def separate(rows, first, second, normal, gap, floor, inv_m, x, sweeps, tol):
                 continue
             n = vec(normal, c)
             now = gap[c] + dot(sub(vec(moved, a), vec(moved, b)), n)
+            worst = max(worst, floor[c] - now)
             new = max(push[r] + (floor[c] - now) / k, 0.0)
             dp = new - push[r]
             push[r] = new
             for d in range(3):
                 moved[a, d] += inv_m[a] * dp * n[d]
                 moved[b, d] -= inv_m[b] * dp * n[d]
-            largest = max(largest, abs(dp) * k)
         done = s + 1
-        if largest <= tol:
+        if worst <= tol:
             break
     for r in range(count):
         c = rows[r]

@@ -94,12 +94,13 @@ def closing_pairs(pairs, x, v, radius, free, reach, horizon, tol):
 
 
 @njit(cache=True)
-def parallel_duplicates(rows, first, triangle, face, gap, normal):
-    """(len(rows),) bool: wall contacts among ``rows`` (sorted by particle) to drop because an
-    earlier-ranked wall contact of the same particle has a (nearly) parallel normal. Faces rank
-    before edges and vertices, then the smaller gap: a sphere over the shared edge of two coplanar
-    triangles touches both at one point, and nearly parallel constraints add nothing but
-    ill-conditioning."""
+def parallel_duplicates(rows, first, triangle, gap, normal, radius):
+    """(len(rows),) bool: wall contacts among ``rows`` (sorted by particle) to drop because a
+    higher-ranked wall contact of the same particle has a (nearly) parallel normal: a sphere over
+    the shared edge of two coplanar triangles touches both at one point, and nearly parallel
+    constraints add nothing but ill-conditioning. The clearly smaller gap (by more than 1e-6 r)
+    ranks first, then the lower triangle index: not whether the closest point is on the face or
+    the edge, which flips with round-off there and would lose the remembered impulse."""
     drop = np.zeros(len(rows), np.bool_)
     start = 0
     while start < len(rows):
@@ -110,12 +111,15 @@ def parallel_duplicates(rows, first, triangle, face, gap, normal):
             cs = rows[s]
             if triangle[cs] < 0:
                 continue
+            tol = CONTACT_TOL * radius[first[cs]]
             for o in range(start, stop):
                 co = rows[o]
                 if o == s or triangle[co] < 0:
                     continue
-                ranks_before = (face[co] and not face[cs]) or (face[co] == face[cs] and (
-                    gap[co] < gap[cs] or (gap[co] == gap[cs] and o < s)))
+                if abs(gap[co] - gap[cs]) > tol:
+                    ranks_before = gap[co] < gap[cs]
+                else:
+                    ranks_before = triangle[co] < triangle[cs]
                 if ranks_before and dot(vec(normal, co), vec(normal, cs)) > PARALLEL:
                     drop[s] = True
                     break

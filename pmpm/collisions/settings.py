@@ -15,9 +15,9 @@ GAP_TOL = 1e-7        # a predicted wall contact further than 1e-7 r (a rotating
 QUIET = 1e-3          # × rest_speed: touching contacts approaching slower are left to the next step's resting solve
 PARALLEL = 1 - 1e-4   # wall contacts of one particle with normals closer than ~0.8° count as one
 OVERLAP_TOL = 1e-9    # × (r_i + r_j): overlaps beyond this are removed by moving positions (never velocities)
-SWEEP_TOL = 1e-12     # × rest_speed: a solve's sweeps stop when no contact changes a velocity by more
+SWEEP_TOL = 1e-10     # × rest_speed: a solve's sweeps stop when no contact changes a velocity by more
 ENERGY_TOL = 1e-12    # relative: a contact solve may not raise the kinetic energy by more (round-off)
-SEARCH_SLACK = 1.25   # a step redone because a speed outgrew the search: the new bound is 1.25 × the speed seen
+SEARCH_SLACK = 1.25   # the broad search assumes speeds up to 1.25 × the fastest (then, if outgrown, the speed seen)
 MAX_SEARCHES = 3      # the step is searched at most this often (then contacts beyond the search are left
                       # to the next step, as overlaps)
 
@@ -33,7 +33,9 @@ class CollisionSettings:
     ``dense_contacts``: a step with at least this many contacts (touching, or able to close within
     the step) is a dense step: every contact solved at once, impacts with their restitution, no
     events; 0 never. ``dense_sweeps``: the most sweeps of a warm-started dense step (× 20 cold).
-    ``resting_sweeps``: the most sweeps of a resting solve (small sets, tightly converged).
+    ``resting_sweeps``: the most sweeps of the resting solve at a step's start (warm-started, tightly
+    converged); ``settle_sweeps``: of one after a slow impact inside the step (cold; what it leaves
+    undone the next step's resting solve finishes).
     """
 
     restitution: float = DEFAULT_RESTITUTION
@@ -45,6 +47,7 @@ class CollisionSettings:
     dense_contacts: int = 256
     dense_sweeps: int = 20
     resting_sweeps: int = 500
+    settle_sweeps: int = 50
 
 
 COLD_SWEEPS = 20  # × dense_sweeps for a dense step without any remembered impulse

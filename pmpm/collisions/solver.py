@@ -120,8 +120,9 @@ def advance_with_collisions(state: ParticleState, walls: Walls | None, dt: float
     kernels = jit.kernels()
     start = Bodies.of(state)
     walls = walls if walls is not None and len(walls) and start.free.any() else None
-    wall_speed = float(walls.travel(dt).max()) / dt if walls is not None else 0.0
-    speed = max(start.top_speed(), settings.rest_speed, 2.0 * wall_speed)
+    wall_speed = float(walls.top_speed.max()) if walls is not None else 0.0
+    # impacts can make a particle faster than any was (a light one hit by a heavy one, a paddle)
+    speed = max(SEARCH_SLACK * start.top_speed(), settings.rest_speed, 2.0 * wall_speed)
     for attempt in range(MAX_SEARCHES):
         last = attempt == MAX_SEARCHES - 1
         bodies = start.copy()
@@ -180,7 +181,8 @@ def event_step(bodies, record, warm_n, warm_t, lam_n, lam_t, settings, dt, speed
     max_events = max(settings.max_events_per_particle * n, settings.min_events)
     return float(kernels.events.run_events(bodies.kernel_tuple(), contacts, wall_arrays(walls) if walls else no_walls(),
                                            (warm_n, warm_t, lam_n, lam_t), dt, settings.rest_speed, max_events,
-                                           speed_bound, settings.resting_sweeps, tol, counters))
+                                           speed_bound, settings.resting_sweeps, settings.settle_sweeps, tol,
+                                           counters))
 
 
 def remove_overlaps(bodies, record, walls_after, kernels, extra) -> None:
@@ -199,7 +201,7 @@ def remove_overlaps(bodies, record, walls_after, kernels, extra) -> None:
     rows = np.flatnonzero(front)
     floor = np.where(overlapping, 0.0, np.minimum(gap, 0.0))
     kernels.impulses.separate(rows, record.first, record.second, normal, gap, floor, bodies.inv_m, bodies.x,
-                              200, 1e-3 * OVERLAP_TOL * float(size[rows].min()))
+                              200, 0.5 * OVERLAP_TOL * float(size[rows].min()))
 
 
 def projected_gauss_seidel(i, j, normal, r_i, r_j, u_wall, target, mu, inv_mass, inv_inertia, v, omega,

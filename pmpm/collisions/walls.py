@@ -99,12 +99,17 @@ class Walls:
         center[k] = centre + shift
         return replace(self, a=a, b=b, c=c, normal=normal, center=center)
 
-    def travel(self, dt: float) -> np.ndarray:
-        """(m,) the farthest any point of each triangle moves in ``dt`` (m): (|V| + |Ω| arm) dt for
-        moving rigid triangles, arm the farthest vertex from the centre; 0 for the others."""
+    @cached_property
+    def top_speed(self) -> np.ndarray:
+        """(m,) the largest speed of a point of each triangle (m/s): |V| + |Ω| arm for moving rigid
+        triangles, arm the farthest vertex from the centre; 0 for the others."""
         arm = np.max([np.linalg.norm(v - self.center, axis=1) for v in (self.a, self.b, self.c)], axis=0)
         speed = np.linalg.norm(self.velocity, axis=1) + np.linalg.norm(self.angular_velocity, axis=1) * arm
-        return np.where(self.moves, speed * dt, 0.0)
+        return np.where(self.moves, speed, 0.0)
+
+    def travel(self, dt: float) -> np.ndarray:
+        """(m,) the farthest any point of each triangle moves in ``dt`` (m)."""
+        return self.top_speed * dt
 
     # -- search -----------------------------------------------------------------------------------
     @cached_property
@@ -131,7 +136,7 @@ class Walls:
             return none, none
         reach = np.broadcast_to(np.asarray(reach, float), len(points))
         bound = self.bounding_radius if extra is None else self.bounding_radius + extra
-        if len(points) > 64:  # many points: one search per triangle, within its own bound
+        if len(points) > 8 * len(self):  # many points, few triangles: one search per triangle
             k, p = flatten(cKDTree(points).query_ball_point(self.centroid, bound + reach.max()))
         else:
             p, k = flatten(self.tree.query_ball_point(points, reach + bound.max()))
