@@ -3,8 +3,9 @@
 
 numba caches each compiled function on disk next to its source (``__pycache__``) and checks only
 the timestamp of that function's own file, not of the files whose functions it calls. The kernels
-call each other across files, so the loader keeps a digest of every source file of this package
-with the cache and clears the package's cached kernels when any file changed. Ranks that compile
+call each other across files, so the loader keeps a digest of the compiled modules' sources (and
+of the constants they read) with the cache and clears the package's cached kernels when any of
+them changed. Ranks that compile
 at once do not clash: numba writes its cache files under a temporary name and renames them.
 With ``NUMBA_CACHE_DIR`` set, numba caches elsewhere and that directory is the user's to clear.
 """
@@ -17,13 +18,14 @@ from pathlib import Path
 from types import SimpleNamespace
 
 HERE = Path(__file__).resolve().parent
+COMPILED = ("contact_times", "deposition", "events", "impulses", "narrow", "settings", "stats")  # and what they import
 
 
 def clear_stale_cache() -> None:
     """Remove this package's numba cache files if any of its sources changed since they were made."""
     if os.environ.get("NUMBA_CACHE_DIR"):
         return
-    digest = hashlib.sha1(b"".join(path.read_bytes() for path in sorted(HERE.glob("*.py")))).hexdigest()
+    digest = hashlib.sha1(b"".join((HERE / f"{name}.py").read_bytes() for name in COMPILED)).hexdigest()
     folder = HERE / "__pycache__"
     stamp = folder / "kernels.sha1"
     try:

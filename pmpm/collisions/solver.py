@@ -185,23 +185,36 @@ def event_step(bodies, record, warm_n, warm_t, lam_n, lam_t, settings, dt, speed
                                            counters))
 
 
-def remove_overlaps(bodies, record, walls_after, kernels, extra) -> None:
+def remove_overlaps(bodies, record, walls_after, kernels, extra, passes: int = 3) -> None:
     """Move apart (positions only) the contacts that overlap at the end of the step by more than
-    ``OVERLAP_TOL`` (r_i + r_j), without pushing their neighbours into new overlaps."""
-    if len(record) == 0:
-        return
+    ``OVERLAP_TOL`` (r_i + r_j), without pushing their neighbours into new overlaps. A deep
+    overlap (a sphere released into another or into a wall) can push a sphere into one that was
+    out of the step's search; then the contacts are searched again at the new positions, at most
+    ``passes`` times in all (what is left is removed in the next steps)."""
     walls = wall_arrays(walls_after) if walls_after is not None and len(walls_after) else no_walls()
-    gap, normal, front = kernels.narrow.end_gaps(record.first, record.second, record.triangle, bodies.x,
-                                                 bodies.radius, walls)
-    size = bodies.radius[record.first] + bodies.radius[record.second]
-    overlapping = front & (gap < -OVERLAP_TOL * size)
-    extra["overlaps_removed"] = int(overlapping.sum())
-    if not overlapping.any():
-        return
-    rows = np.flatnonzero(front)
-    floor = np.where(overlapping, 0.0, np.minimum(gap, 0.0))
-    kernels.impulses.separate(rows, record.first, record.second, normal, gap, floor, bodies.inv_m, bodies.x,
-                              200, 0.5 * OVERLAP_TOL * float(size[rows].min()))
+    removed = 0
+    for attempt in range(passes):
+        if len(record) == 0:
+            break
+        gap, normal, front = kernels.narrow.end_gaps(record.first, record.second, record.triangle, bodies.x,
+                                                     bodies.radius, walls)
+        size = bodies.radius[record.first] + bodies.radius[record.second]
+        overlapping = front & (gap < -OVERLAP_TOL * size)
+        if not overlapping.any():
+            break
+        removed += int(overlapping.sum())
+        rows = np.flatnonzero(front)
+        floor = np.where(overlapping, 0.0, np.minimum(gap, 0.0))
+        before = bodies.x.copy()
+        kernels.impulses.separate(rows, record.first, record.second, normal, gap, floor, bodies.inv_m, bodies.x,
+                                  200, 0.5 * OVERLAP_TOL * float(size[rows].min()))
+        moved = float(np.sqrt(((bodies.x - before) ** 2).sum(1)).max())
+        if moved <= CONTACT_TOL * float(bodies.radius.max()):
+            break  # too little to reach a sphere beyond the contacts searched
+        # the contacts at the new positions, within the distance moved
+        record = find_contacts(bodies, walls_after if walls_after is not None and len(walls_after) else None, 0.0,
+                               2.0 * moved, 0.0, 0.0, kernels.narrow)
+    extra["overlaps_removed"] = removed
 
 
 def projected_gauss_seidel(i, j, normal, r_i, r_j, u_wall, target, mu, inv_mass, inv_inertia, v, omega,
