@@ -1,6 +1,7 @@
 """DEM-only hopper discharge (no flow), pmpm against LIGGGHTS on the same work.
 
-    OMP_NUM_THREADS=1 .venv/bin/python bench/hopper.py [N [SIM_TIME [DT]]]   # 10000 particles, 1.0 s, 2e-3 s
+    OMP_NUM_THREADS=1 .venv/bin/python bench/hopper.py [N [SIM_TIME [DT]]] [--ranks 1,2] [--no-peer]
+    # defaults: 10000 particles, 1.0 s, 2e-3 s, 1 and 2 ranks, LIGGGHTS too
 
 The peer's geometry and particles (../shared/peers/liggghts_hopper.sh): conical hopper, orifice
 D0 = 30 mm, spheres d = 4 mm, ρ = 2500, restitution 0.9, friction 0.3. As the peer does, the
@@ -81,9 +82,13 @@ def steady_rate(csv, start) -> float:
 
 
 def main():
-    count = int(sys.argv[1]) if len(sys.argv) > 1 else 10000
-    sim_time = float(sys.argv[2]) if len(sys.argv) > 2 else 1.0
-    dt = float(sys.argv[3]) if len(sys.argv) > 3 else 2e-3
+    args = [a for a in sys.argv[1:] if not a.startswith("--")]
+    options = sys.argv[1:]
+    rank_counts = [int(n) for n in options[options.index("--ranks") + 1].split(",")] if "--ranks" in options else [1, 2]
+    args = [a for a in args if not ("--ranks" in options and a == options[options.index("--ranks") + 1])]
+    count = int(args[0]) if len(args) > 0 else 10000
+    sim_time = float(args[1]) if len(args) > 1 else 1.0
+    dt = float(args[2]) if len(args) > 2 else 2e-3
     import meshio
     folder = Path(tempfile.mkdtemp(prefix="pmpm_hopper_"))
     meshio.write(str(folder / "hopper.msh"), hopper_mesh(), file_format="gmsh22", binary=False)
@@ -100,7 +105,7 @@ def main():
     beverloo = 0.58 * bulk * np.sqrt(9.81) * (2 * ORIFICE - 1.5 * DIAMETER) ** 2.5   # kg/s
     beverloo_rate = beverloo / (DENSITY * np.pi * DIAMETER ** 3 / 6)
     results = {}
-    for ranks in (1, 2):
+    for ranks in rank_counts:
         # the discharge continues the fill's checkpoint with the orifice open
         seconds, summary, out = pmpm(folder, ranks, restart=checkpoint, end_time=FILL_TIME + sim_time, dt=dt,
                                      orifice="outlet", particles="loose.txt", output_every=sim_time / 10)
@@ -111,7 +116,8 @@ def main():
         steady = steady_rate(out / "particles.csv", FILL_TIME + sim_time / 2)
         results[ranks] = seconds
         print(f"pmpm hopper ranks={ranks} particles={count} sim_time={sim_time} dt={dt} steps={steps} "
-              f"wall_s={seconds:.1f} discharged={discharged} rate={discharged / sim_time:.0f}/s "
+              f"wall_s={seconds:.1f} collisions_s={summary['wall_seconds'].get('collisions', 0):.1f} "
+              f"discharged={discharged} rate={discharged / sim_time:.0f}/s "
               f"steady_rate={steady:.0f}/s (Beverloo {beverloo_rate:.0f}/s, ratio {steady / beverloo_rate:.2f}) "
               f"collisions={impacts} collisions_per_wall_s={impacts / seconds:.0f} "
               f"events_per_step={collisions.get('events', 0) / steps:.1f} "
@@ -120,8 +126,10 @@ def main():
               f"resting_contacts_per_step={collisions.get('resting_contacts', 0) / steps:.0f} "
               f"sweeps_per_step={collisions.get('sweeps', 0) / steps:.1f} "
               f"fallbacks={collisions.get('fallbacks', 0)} capped_steps={collisions.get('capped', 0)}", flush=True)
-    if results[1] and results[2]:
+    if results.get(1) and results.get(2):
         print(f"pmpm speed-up 1 -> 2 ranks: {results[1] / results[2]:.2f}")
+    if "--no-peer" in options:
+        return
     if not PEER.exists():
         print(f"LIGGGHTS peer script not found at {PEER}: no comparison")
         return

@@ -22,17 +22,19 @@ from .settings import COLD_SWEEPS, CONTACT_TOL, ENERGY_TOL, SWEEP_TOL
 from .stats import CLAMPS, PAIR, RESTING, SWEEPS, WALL
 
 
-def dense_step(bodies, record, rows, warm_n, warm_t, settings, dt, walls, kernels, counters, extra):
-    """Solve the contacts ``rows`` of ``record`` at once and move every body to the end of the
-    step. Returns the contacts' impulses (m,) and (m, 3) (N s, on ``first``)."""
+def dense_step(bodies, record, warm_n, warm_t, settings, dt, walls, kernels, counters, extra):
+    """Solve the contacts of ``record`` at once and move every body to the end of the step.
+    ``warm_n`` (m,), ``warm_t`` (m, 3): the remembered impulses. Returns the contacts' impulses
+    (m,) and (m, 3) (N s, on ``first``)."""
     impulses = kernels.impulses
     n, m = len(bodies.radius) - 1, len(record)
     first, second, triangle = record.first, record.second, record.triangle
+    rows = np.arange(m)
     rows = rows[~kernels.narrow.parallel_duplicates(rows, first, triangle, record.gap, record.normal, bodies.radius)]
     wall = triangle >= 0
     r_first = bodies.radius[first]
     r_second = np.where(wall, 0.0, bodies.radius[second])
-    deposition = wall_arrays(walls)[9] if walls is not None else np.zeros(0, bool)
+    deposition = wall_arrays(walls)[9]
     changed = np.zeros(n + 1, np.int64)
     kernels.deposition.deposit_touching(rows, record.gap, r_first, bodies.kernel_tuple(), (first, second, triangle),
                                         deposition, changed, counters)

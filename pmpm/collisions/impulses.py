@@ -41,7 +41,7 @@ def impact(u, n, k_n, k_t, e, mu):
     return (j_n * n[0] + s * stick[0], j_n * n[1] + s * stick[1], j_n * n[2] + s * stick[2]), False
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def apply_impulse(a, b, J, n, r_a, r_b, inv_m, inv_i, v, w):
     """J on body a, −J on body b, at the contact with normal n (towards a)."""
     c = cross(n, J)
@@ -54,14 +54,14 @@ def apply_impulse(a, b, J, n, r_a, r_b, inv_m, inv_i, v, w):
         w[b, d] -= wb * c[d]
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def relative_velocity(a, b, n, r_a, r_b, u_wall, v, w):
     """Contact-point velocity of body a relative to body b (and the wall surface u_wall)."""
     s = (r_a * w[a, 0] + r_b * w[b, 0], r_a * w[a, 1] + r_b * w[b, 1], r_a * w[a, 2] + r_b * w[b, 2])
     return sub(sub(sub(vec(v, a), vec(v, b)), u_wall), cross(s, n))
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def project(c, inv_kn, inv_kt, first, second, normal, r_first, r_second, u_wall, target, mu, inv_m, inv_i, v, w,
             lam_n, lam_t):
     """One projected update of contact c (the closed form, on the impulses so far); returns the

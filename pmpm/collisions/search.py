@@ -14,15 +14,13 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from .record import ContactRecord
-from .walls import Walls
+from .walls import Walls, flatten
 
 
-def wall_arrays(walls: Walls) -> tuple:
-    """The Walls' arrays in the order the compiled kernels take them (``narrow``)."""
-    arrays = (walls.a, walls.b, walls.c, walls.normal, walls.center, walls.velocity, walls.angular_velocity)
-    return tuple(np.ascontiguousarray(a, float) for a in arrays) + (
-        np.ascontiguousarray(walls.rigid, np.bool_), np.ascontiguousarray(walls.moves, np.bool_),
-        np.ascontiguousarray(walls.deposition, np.bool_))
+def wall_arrays(walls: Walls | None) -> tuple:
+    """The walls' arrays in the order the compiled kernels take them (``narrow``); empty ones
+    without walls."""
+    return walls.kernel_arrays if walls is not None and len(walls) else no_walls()
 
 
 def no_walls() -> tuple:
@@ -31,16 +29,25 @@ def no_walls() -> tuple:
     return (z3, z3, z3, z3, z3, z3, z3, zb, zb, zb)
 
 
-def candidate_pairs(x: np.ndarray, radius: np.ndarray, reach: float) -> np.ndarray:
-    """(k, 2) int64 pairs i < j of centres closer than 2 r_max + ``reach`` (m)."""
+def candidate_pairs(x: np.ndarray, radius: np.ndarray, reach: float, around: np.ndarray | None = None) -> np.ndarray:
+    """(k, 2) int64 pairs i < j of centres closer than 2 r_max + ``reach`` (m); with ``around``
+    (indices), only the pairs with one of them."""
     if len(x) < 2:
         return np.zeros((0, 2), np.int64)
-    return cKDTree(x).query_pairs(2.0 * float(radius.max()) + reach, output_type="ndarray").astype(np.int64)
+    span = 2.0 * float(radius.max()) + reach
+    tree = cKDTree(x)
+    if around is None:
+        return tree.query_pairs(span, output_type="ndarray").astype(np.int64)
+    i, j = flatten(tree.query_ball_point(x[around], span))
+    i = around[i]
+    pairs = np.unique(np.sort(np.column_stack([i, j])[i != j], axis=1), axis=0)
+    return pairs.astype(np.int64).reshape(-1, 2)
 
 
 def find_contacts(bodies, walls: Walls | None, dt: float, reach: float, restitution: float, friction: float,
-                  narrow) -> ContactRecord:
-    """The step's contacts (see the module's docstring).
+                  narrow, around: np.ndarray | None = None) -> ContactRecord:
+    """The step's contacts (see the module's docstring); with ``around`` (particle indices), only
+    the contacts of those particles.
 
     Parameters
     ----------
@@ -52,13 +59,15 @@ def find_contacts(bodies, walls: Walls | None, dt: float, reach: float, restitut
     """
     n = len(bodies.radius) - 1
     x, v, radius, free = bodies.x, bodies.v, bodies.radius, bodies.free
-    pairs = candidate_pairs(x[:n], radius[:n], reach)
+    pairs = candidate_pairs(x[:n], radius[:n], reach, around)
     keep, normal, gap, time = narrow.pair_contacts(pairs[:, 0], pairs[:, 1], x, v, radius, free, reach, dt)
     k = len(pairs)
     parts = [ContactRecord(pairs[keep, 0], pairs[keep, 1], np.full(int(keep.sum()), -1), normal[keep], gap[keep],
                            np.ones(int(keep.sum()), bool), time[keep], np.zeros((int(keep.sum()), 3)),
                            np.full(k, restitution)[keep], np.full(k, friction)[keep], np.zeros(k)[keep])]
     mobile = np.flatnonzero(free[:n])
+    if around is not None:
+        mobile = np.intersect1d(mobile, around)
     if walls is not None and len(walls) and len(mobile):
         travel = walls.travel(dt)
         p, tri = walls.near(x[mobile], radius[mobile] + 0.5 * reach, extra=travel)

@@ -18,6 +18,7 @@ OVERLAP_TOL = 1e-9    # × (r_i + r_j): overlaps beyond this are removed by movi
 SWEEP_TOL = 1e-10     # × rest_speed: a solve's sweeps stop when no contact changes a velocity by more
 ENERGY_TOL = 1e-12    # relative: a contact solve may not raise the kinetic energy by more (round-off)
 SEARCH_SLACK = 1.25   # the broad search assumes speeds up to 1.25 × the fastest (then, if outgrown, the speed seen)
+SEPARATION_SWEEPS = 50  # sweeps of one overlap removal (what is left is removed in the next steps)
 MAX_SEARCHES = 3      # the step is searched at most this often (then contacts beyond the search are left
                       # to the next step, as overlaps)
 
@@ -46,7 +47,7 @@ class CollisionSettings:
     min_events: int = 1000
     dense_contacts: int = 256
     dense_sweeps: int = 20
-    resting_sweeps: int = 500
+    resting_sweeps: int = 100
     settle_sweeps: int = 50
 
 

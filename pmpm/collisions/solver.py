@@ -23,8 +23,9 @@ import numpy as np
 from . import jit
 from .dense import dense_step
 from .record import ContactMemory
-from .search import find_contacts, no_walls, wall_arrays
-from .settings import CONTACT_TOL, MAX_SEARCHES, OVERLAP_TOL, SEARCH_SLACK, SWEEP_TOL, CollisionSettings
+from .search import find_contacts, wall_arrays
+from .settings import (CONTACT_TOL, MAX_SEARCHES, OVERLAP_TOL, SEARCH_SLACK, SEPARATION_SWEEPS, SWEEP_TOL,
+                       CollisionSettings)
 from .stats import EXCEEDED, as_dict, new_counters
 from .walls import Walls
 from ..particles import FIXED, FREE, PRESCRIBED, ParticleState
@@ -135,8 +136,12 @@ def advance_with_collisions(state: ParticleState, walls: Walls | None, dt: float
         extra["contacts"] = len(record)
         acting = can_act(record, bodies, dt)
         if 0 < settings.dense_contacts <= acting.sum():
-            lam_n, lam_t = dense_step(bodies, record, np.flatnonzero(acting), warm_n, warm_t, settings, dt,
-                                      walls, kernels, counters, extra)
+            # all the step's contacts at once: only those that can act matter (and the sweeps run
+            # over contiguous arrays)
+            acting = np.flatnonzero(acting)
+            record = record.take(acting)
+            lam_n, lam_t = dense_step(bodies, record, warm_n[acting], warm_t[acting], settings, dt, walls, kernels,
+                                      counters, extra)
             break
         lam_n, lam_t = np.zeros(len(record)), np.zeros((len(record), 3))
         top = event_step(bodies, record, warm_n, warm_t, lam_n, lam_t, settings, dt, np.inf if last else speed,
@@ -145,7 +150,7 @@ def advance_with_collisions(state: ParticleState, walls: Walls | None, dt: float
             break
         counters[EXCEEDED] += 1
         speed = SEARCH_SLACK * top
-    remove_overlaps(bodies, record, walls_after, kernels, extra)
+    remove_overlaps(bodies, record, walls_after, kernels, extra, searched=2.0 * speed * dt)
     state.x[:] = bodies.x[:n]
     free = state.motion == FREE  # deposited ones included: they now rest
     state.v[free] = bodies.v[:n][free]
@@ -179,19 +184,20 @@ def event_step(bodies, record, warm_n, warm_t, lam_n, lam_t, settings, dt, speed
     scale = max(settings.rest_speed, bodies.top_speed(), 1e-300)
     tol = SWEEP_TOL * settings.rest_speed if settings.rest_speed > 0 else 1e-12 * scale
     max_events = max(settings.max_events_per_particle * n, settings.min_events)
-    return float(kernels.events.run_events(bodies.kernel_tuple(), contacts, wall_arrays(walls) if walls else no_walls(),
+    return float(kernels.events.run_events(bodies.kernel_tuple(), contacts, wall_arrays(walls),
                                            (warm_n, warm_t, lam_n, lam_t), dt, settings.rest_speed, max_events,
                                            speed_bound, settings.resting_sweeps, settings.settle_sweeps, tol,
                                            counters))
 
 
-def remove_overlaps(bodies, record, walls_after, kernels, extra, passes: int = 3) -> None:
+def remove_overlaps(bodies, record, walls_after, kernels, extra, searched: float, passes: int = 3) -> None:
     """Move apart (positions only) the contacts that overlap at the end of the step by more than
     ``OVERLAP_TOL`` (r_i + r_j), without pushing their neighbours into new overlaps. A deep
-    overlap (a sphere released into another or into a wall) can push a sphere into one that was
-    out of the step's search; then the contacts are searched again at the new positions, at most
-    ``passes`` times in all (what is left is removed in the next steps)."""
-    walls = wall_arrays(walls_after) if walls_after is not None and len(walls_after) else no_walls()
+    overlap (a sphere released into another or into a wall) can push a sphere further than the
+    step's search reached (``searched``, m) into one it did not list; then the contacts are
+    searched again at the new positions, at most ``passes`` times in all (what is left is removed
+    in the next steps)."""
+    walls = wall_arrays(walls_after)
     removed = 0
     for attempt in range(passes):
         if len(record) == 0:
@@ -203,17 +209,32 @@ def remove_overlaps(bodies, record, walls_after, kernels, extra, passes: int = 3
         if not overlapping.any():
             break
         removed += int(overlapping.sum())
-        rows = np.flatnonzero(front)
+        # the overlaps, and the contacts that moving them apart could close (the deepest overlap
+        # bounds how far a sphere moves). A deep overlap (a release into a wall: > 0.1 r) gets the
+        # sweeps to go at once over all such contacts, and a new search if it moved spheres far;
+        # the creep of a pack a few sweeps a step, over the contacts of the spheres that overlap
+        deepest = -float(gap[overlapping].min())
+        deep = deepest > 0.1 * float(bodies.radius.max())
+        near = front & (gap < deepest)
+        if not deep:
+            involved = np.zeros(len(bodies.radius), bool)
+            involved[record.first[overlapping]] = involved[record.second[overlapping]] = True
+            involved[-1] = False  # the world (walls)
+            near &= involved[record.first] | involved[record.second]
+        rows = np.flatnonzero(near)
         floor = np.where(overlapping, 0.0, np.minimum(gap, 0.0))
         before = bodies.x.copy()
         kernels.impulses.separate(rows, record.first, record.second, normal, gap, floor, bodies.inv_m, bodies.x,
-                                  200, 0.5 * OVERLAP_TOL * float(size[rows].min()))
-        moved = float(np.sqrt(((bodies.x - before) ** 2).sum(1)).max())
-        if moved <= CONTACT_TOL * float(bodies.radius.max()):
+                                  SEPARATION_SWEEPS if deep else SEPARATION_SWEEPS // 5,
+                                  0.5 * OVERLAP_TOL * float(size[rows].min()))
+        shift = np.sqrt(((bodies.x - before) ** 2).sum(1))
+        moved = float(shift.max())
+        if not deep or moved <= 0.25 * searched:
             break  # too little to reach a sphere beyond the contacts searched
-        # the contacts at the new positions, within the distance moved
+        # the contacts of the spheres that moved far, at their new positions
+        searched = 2.0 * moved
         record = find_contacts(bodies, walls_after if walls_after is not None and len(walls_after) else None, 0.0,
-                               2.0 * moved, 0.0, 0.0, kernels.narrow)
+                               searched, 0.0, 0.0, kernels.narrow, around=np.flatnonzero(shift[:-1] > 0))
     extra["overlaps_removed"] = removed
 
 

@@ -111,6 +111,14 @@ class Walls:
         """(m,) the farthest any point of each triangle moves in ``dt`` (m)."""
         return self.top_speed * dt
 
+    @cached_property
+    def kernel_arrays(self) -> tuple:
+        """The arrays in the order the compiled kernels take them (``narrow``): a, b, c, normal,
+        center, velocity, angular_velocity (float64), rigid, moves, deposition (bool)."""
+        arrays = (self.a, self.b, self.c, self.normal, self.center, self.velocity, self.angular_velocity)
+        return tuple(np.ascontiguousarray(a, float) for a in arrays) + tuple(
+            np.ascontiguousarray(a, np.bool_) for a in (self.rigid, self.moves, self.deposition))
+
     # -- search -----------------------------------------------------------------------------------
     @cached_property
     def centroid(self) -> np.ndarray:
@@ -136,7 +144,7 @@ class Walls:
             return none, none
         reach = np.broadcast_to(np.asarray(reach, float), len(points))
         bound = self.bounding_radius if extra is None else self.bounding_radius + extra
-        if len(points) > 8 * len(self):  # many points, few triangles: one search per triangle
+        if 4 * len(points) > len(self):  # many points: one search per triangle, within its own bound
             k, p = flatten(cKDTree(points).query_ball_point(self.centroid, bound + reach.max()))
         else:
             p, k = flatten(self.tree.query_ball_point(points, reach + bound.max()))
