@@ -18,10 +18,12 @@ from .settings import CONTACT_TOL, PARALLEL
 @njit(cache=True)
 def pair_contacts(first, second, x, v, radius, free, reach, dt):
     """Candidate pairs (first, second) kept where one is free and the gap is at most ``reach`` (m)
-    beyond touching. Returns keep (k,) bool, normal (k, 3) towards first, gap (k,) m and the first
-    contact time (k,) s within ``dt`` at the current velocities (inf: none)."""
+    beyond touching. Returns keep (k,) bool; acts (k,) bool: touching, or the gap can close
+    within ``dt`` at the relative speed of the centres; normal (k, 3) towards first; gap (k,) m;
+    the first contact time (k,) s within ``dt`` at the current velocities (inf: none)."""
     count = len(first)
     keep = np.zeros(count, np.bool_)
+    acts = np.zeros(count, np.bool_)
     normal = np.zeros((count, 3))
     gap = np.zeros(count)
     time = np.full(count, np.inf)
@@ -34,22 +36,26 @@ def pair_contacts(first, second, x, v, radius, free, reach, dt):
         contact = radius[a] + radius[b]
         if dist <= 0.0 or dist - contact > reach + CONTACT_TOL * contact:
             continue
+        dv = sub(vec(v, a), vec(v, b))
         keep[c] = True
+        acts[c] = dist - contact <= norm(dv) * dt + CONTACT_TOL * radius[a]
         normal[c, 0], normal[c, 1], normal[c, 2] = scale(dx, 1.0 / dist)
         gap[c] = dist - contact
-        time[c] = pair_time(dx, sub(vec(v, a), vec(v, b)), contact, dt, 0.0)
-    return keep, normal, gap, time
+        time[c] = pair_time(dx, dv, contact, dt, 0.0)
+    return keep, acts, normal, gap, time
 
 
 @njit(cache=True)
 def wall_contacts(particle, triangle, x, v, radius, walls, travel, reach, dt):
     """Candidate (particle, triangle) pairs kept where the sphere is on the domain side and its gap
-    is at most ``reach`` + the triangle's ``travel`` (m). Returns keep, normal (towards the
-    sphere), gap, face (bool: the closest point is inside the face), wall surface velocity at the
-    contact point (k, 3) and the first contact time within ``dt`` (inf: none)."""
+    is at most ``reach`` + the triangle's ``travel`` (m). Returns keep; acts (touching, or closing
+    within ``dt`` at the speed of the centre relative to the wall surface); normal (towards the
+    sphere); gap; face (bool: the closest point is inside the face); the wall surface velocity
+    at the contact point (k, 3); the first contact time within ``dt`` (inf: none)."""
     A, B, C, N, centre, velocity, omega, rigid, moves, deposition = walls
     count = len(particle)
     keep = np.zeros(count, np.bool_)
+    acts = np.zeros(count, np.bool_)
     normal = np.zeros((count, 3))
     gap = np.zeros(count)
     face = np.zeros(count, np.bool_)
@@ -69,9 +75,10 @@ def wall_contacts(particle, triangle, x, v, radius, walls, travel, reach, dt):
         face[c] = on_face
         u = surface_velocity(k, q, ctr, n, velocity, omega, rigid)
         u_wall[c, 0], u_wall[c, 1], u_wall[c, 2] = u
+        acts[c] = g <= norm(sub(vec(v, p), u)) * dt + CONTACT_TOL * radius[p]
         w = sub(vec(v, p), u) if moves[k] else vec(v, p)
         time[c] = wall_time(xp, w, radius[p], a, b, cc, n, dt, 0.0)
-    return keep, normal, gap, face, u_wall, time
+    return keep, acts, normal, gap, face, u_wall, time
 
 
 @njit(cache=True)

@@ -45,9 +45,11 @@ def candidate_pairs(x: np.ndarray, radius: np.ndarray, reach: float, around: np.
 
 
 def find_contacts(bodies, walls: Walls | None, dt: float, reach: float, restitution: float, friction: float,
-                  narrow, around: np.ndarray | None = None) -> ContactRecord:
-    """The step's contacts (see the module's docstring); with ``around`` (particle indices), only
-    the contacts of those particles.
+                  narrow, around: np.ndarray | None = None, dense_contacts: int = 0) -> tuple[ContactRecord, bool]:
+    """The step's contacts (see the module's docstring), and whether the step is dense: at least
+    ``dense_contacts`` (> 0) of them can act (touching, or closing within ``dt`` at the relative
+    speed of the centres); a dense step's record holds only those. With ``around`` (particle
+    indices), only the contacts of those particles.
 
     Parameters
     ----------
@@ -60,11 +62,10 @@ def find_contacts(bodies, walls: Walls | None, dt: float, reach: float, restitut
     n = len(bodies.radius) - 1
     x, v, radius, free = bodies.x, bodies.v, bodies.radius, bodies.free
     pairs = candidate_pairs(x[:n], radius[:n], reach, around)
-    keep, normal, gap, time = narrow.pair_contacts(pairs[:, 0], pairs[:, 1], x, v, radius, free, reach, dt)
-    k = len(pairs)
-    parts = [ContactRecord(pairs[keep, 0], pairs[keep, 1], np.full(int(keep.sum()), -1), normal[keep], gap[keep],
-                           np.ones(int(keep.sum()), bool), time[keep], np.zeros((int(keep.sum()), 3)),
-                           np.full(k, restitution)[keep], np.full(k, friction)[keep], np.zeros(k)[keep])]
+    keep, acts, normal, gap, time = narrow.pair_contacts(pairs[:, 0], pairs[:, 1], x, v, radius, free, reach, dt)
+    found = [(keep, acts, pairs[:, 0], pairs[:, 1], np.full(len(pairs), -1), normal, gap, np.ones(len(pairs), bool),
+              time, np.zeros((len(pairs), 3)), np.full(len(pairs), restitution), np.full(len(pairs), friction),
+              np.zeros(len(pairs)))]
     mobile = np.flatnonzero(free[:n])
     if around is not None:
         mobile = np.intersect1d(mobile, around)
@@ -72,10 +73,11 @@ def find_contacts(bodies, walls: Walls | None, dt: float, reach: float, restitut
         travel = walls.travel(dt)
         p, tri = walls.near(x[mobile], radius[mobile] + 0.5 * reach, extra=travel)
         p = mobile[p]
-        keep, normal, gap, face, u_wall, time = narrow.wall_contacts(p, tri, x, v, radius, wall_arrays(walls),
-                                                                     travel, 0.5 * reach, dt)
-        p, tri = p[keep], tri[keep]
-        parts.append(ContactRecord(p, np.full(len(p), n), tri, normal[keep], gap[keep], face[keep], time[keep],
-                                   u_wall[keep], walls.restitution[tri], walls.friction[tri],
-                                   walls.rolling_friction[tri]))
-    return ContactRecord.concatenate(parts)
+        keep, acts, normal, gap, face, u_wall, time = narrow.wall_contacts(p, tri, x, v, radius, wall_arrays(walls),
+                                                                           travel, 0.5 * reach, dt)
+        found.append((keep, acts, p, np.full(len(p), n), tri, normal, gap, face, time, u_wall,
+                      walls.restitution[tri], walls.friction[tri], walls.rolling_friction[tri]))
+    dense = 0 < dense_contacts <= sum(int(part[1].sum()) for part in found)
+    # a dense step needs only the contacts that can act; an event step all within reach
+    parts = [ContactRecord(*(array[part[1] if dense else part[0]] for array in part[2:])) for part in found]
+    return ContactRecord.concatenate(parts), dense

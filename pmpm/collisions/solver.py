@@ -24,7 +24,7 @@ from . import jit
 from .dense import dense_step
 from .record import ContactMemory
 from .search import find_contacts, wall_arrays
-from .settings import (CONTACT_TOL, MAX_SEARCHES, OVERLAP_TOL, SEARCH_SLACK, SEPARATION_SWEEPS, SWEEP_TOL,
+from .settings import (MAX_SEARCHES, OVERLAP_TOL, SEARCH_SLACK, SEPARATION_SWEEPS, SWEEP_TOL,
                        CollisionSettings)
 from .stats import EXCEEDED, as_dict, new_counters
 from .walls import Walls
@@ -130,18 +130,12 @@ def advance_with_collisions(state: ParticleState, walls: Walls | None, dt: float
         exceeded = counters[EXCEEDED]
         counters[:] = 0
         counters[EXCEEDED] = exceeded
-        record = find_contacts(bodies, walls, dt, 2.0 * speed * dt, settings.restitution, settings.friction,
-                               kernels.narrow)
+        record, dense = find_contacts(bodies, walls, dt, 2.0 * speed * dt, settings.restitution, settings.friction,
+                                      kernels.narrow, dense_contacts=settings.dense_contacts)
         warm_n, warm_t = memory.recall(record, state.id)
         extra["contacts"] = len(record)
-        acting = can_act(record, bodies, dt)
-        if 0 < settings.dense_contacts <= acting.sum():
-            # all the step's contacts at once: only those that can act matter (and the sweeps run
-            # over contiguous arrays)
-            acting = np.flatnonzero(acting)
-            record = record.take(acting)
-            lam_n, lam_t = dense_step(bodies, record, warm_n[acting], warm_t[acting], settings, dt, walls, kernels,
-                                      counters, extra)
+        if dense:
+            lam_n, lam_t = dense_step(bodies, record, warm_n, warm_t, settings, dt, walls, kernels, counters, extra)
             break
         lam_n, lam_t = np.zeros(len(record)), np.zeros((len(record), 3))
         top = event_step(bodies, record, warm_n, warm_t, lam_n, lam_t, settings, dt, np.inf if last else speed,
@@ -150,22 +144,13 @@ def advance_with_collisions(state: ParticleState, walls: Walls | None, dt: float
             break
         counters[EXCEEDED] += 1
         speed = SEARCH_SLACK * top
-    remove_overlaps(bodies, record, walls_after, kernels, extra, searched=2.0 * speed * dt)
+    remove_overlaps(bodies, record, walls_after, kernels, extra, 2.0 * speed * dt, thorough=not dense)
     state.x[:] = bodies.x[:n]
     free = state.motion == FREE  # deposited ones included: they now rest
     state.v[free] = bodies.v[:n][free]
     state.omega[:] = bodies.w[:n]
     state.deposited[:] = bodies.deposited[:n]
     return StepResult(as_dict(counters, extra), ContactMemory.remember(record, state.id, lam_n, lam_t), walls_after)
-
-
-def can_act(record, bodies: Bodies, dt: float) -> np.ndarray:
-    """(m,) bool: contacts touching, or whose gap can close within ``dt`` at the relative speed of
-    the centres (a wall: of the centre and the wall surface)."""
-    relative = bodies.v[record.first] - np.where((record.triangle < 0)[:, None], bodies.v[record.second],
-                                                 record.wall_velocity)
-    speed = np.sqrt((relative * relative).sum(1))
-    return record.gap <= speed * dt + CONTACT_TOL * bodies.radius[record.first]
 
 
 def event_step(bodies, record, warm_n, warm_t, lam_n, lam_t, settings, dt, speed_bound, walls, kernels,
@@ -190,16 +175,20 @@ def event_step(bodies, record, warm_n, warm_t, lam_n, lam_t, settings, dt, speed
                                            counters))
 
 
-def remove_overlaps(bodies, record, walls_after, kernels, extra, searched: float, passes: int = 3) -> None:
+def remove_overlaps(bodies, record, walls_after, kernels, extra, searched: float, thorough: bool) -> None:
     """Move apart (positions only) the contacts that overlap at the end of the step by more than
-    ``OVERLAP_TOL`` (r_i + r_j), without pushing their neighbours into new overlaps. A deep
-    overlap (a sphere released into another or into a wall) can push a sphere further than the
-    step's search reached (``searched``, m) into one it did not list; then the contacts are
-    searched again at the new positions, at most ``passes`` times in all (what is left is removed
-    in the next steps)."""
+    ``OVERLAP_TOL`` (r_i + r_j), without pushing the contacts of the spheres moved into new
+    overlaps.
+
+    ``thorough`` (an event step: few contacts): sweeps until done, and if a sphere moved further
+    than a quarter of the step's search reached (``searched``, m), the contacts of the spheres
+    moved are searched again and the removal repeated (3 passes in all): a sphere released deep
+    into a wall or into other spheres is separated in one step. Otherwise (a dense step: a pack
+    creeps by what its budgeted sweeps left) a few sweeps over the contacts of the spheres that
+    overlap; what is left goes to the next step, whose search lists every contact touching."""
     walls = wall_arrays(walls_after)
     removed = 0
-    for attempt in range(passes):
+    for attempt in range(3):
         if len(record) == 0:
             break
         gap, normal, front = kernels.narrow.end_gaps(record.first, record.second, record.triangle, bodies.x,
@@ -210,13 +199,9 @@ def remove_overlaps(bodies, record, walls_after, kernels, extra, searched: float
             break
         removed += int(overlapping.sum())
         # the overlaps, and the contacts that moving them apart could close (the deepest overlap
-        # bounds how far a sphere moves). A deep overlap (a release into a wall: > 0.1 r) gets the
-        # sweeps to go at once over all such contacts, and a new search if it moved spheres far;
-        # the creep of a pack a few sweeps a step, over the contacts of the spheres that overlap
-        deepest = -float(gap[overlapping].min())
-        deep = deepest > 0.1 * float(bodies.radius.max())
-        near = front & (gap < deepest)
-        if not deep:
+        # bounds how far a sphere moves)
+        near = front & (gap < -float(gap[overlapping].min()))
+        if not thorough:
             involved = np.zeros(len(bodies.radius), bool)
             involved[record.first[overlapping]] = involved[record.second[overlapping]] = True
             involved[-1] = False  # the world (walls)
@@ -225,16 +210,15 @@ def remove_overlaps(bodies, record, walls_after, kernels, extra, searched: float
         floor = np.where(overlapping, 0.0, np.minimum(gap, 0.0))
         before = bodies.x.copy()
         kernels.impulses.separate(rows, record.first, record.second, normal, gap, floor, bodies.inv_m, bodies.x,
-                                  SEPARATION_SWEEPS if deep else SEPARATION_SWEEPS // 5,
+                                  SEPARATION_SWEEPS if thorough else SEPARATION_SWEEPS // 5,
                                   0.5 * OVERLAP_TOL * float(size[rows].min()))
         shift = np.sqrt(((bodies.x - before) ** 2).sum(1))
         moved = float(shift.max())
-        if not deep or moved <= 0.25 * searched:
-            break  # too little to reach a sphere beyond the contacts searched
-        # the contacts of the spheres that moved far, at their new positions
+        if not thorough or moved <= 0.25 * searched:
+            break  # (or too little to reach a sphere beyond the contacts searched)
         searched = 2.0 * moved
         record = find_contacts(bodies, walls_after if walls_after is not None and len(walls_after) else None, 0.0,
-                               searched, 0.0, 0.0, kernels.narrow, around=np.flatnonzero(shift[:-1] > 0))
+                               searched, 0.0, 0.0, kernels.narrow, around=np.flatnonzero(shift[:-1] > 0))[0]
     extra["overlaps_removed"] = removed
 
 
