@@ -759,3 +759,28 @@ def test_dense_steps_never_gain_kinetic_energy():
         now = kinetic(state)
         assert now <= energy * (1 + 1e-12)
         energy = now
+
+
+def test_wall_search_matches_the_direct_test():
+    """The walls' grid search lists exactly the (point, triangle) pairs whose boxes and bounding
+    spheres meet (a direct test over every pair), in order, for triangles of very different sizes;
+    every triangle within reach of a point is among them."""
+    rng = np.random.default_rng(8)
+    corners = rng.uniform(0, 1, (300, 1, 3)) + rng.uniform(-1, 1, (300, 3, 3)) * rng.uniform(0.001, 0.2, (300, 1, 1))
+    walls = Walls.from_triangles(corners)
+    points = rng.uniform(-0.1, 1.1, (500, 3))
+    reach = rng.uniform(0, 0.05, 500)
+    extra = rng.uniform(0, 0.02, 300)
+    p, k = walls.near(points, reach, extra)
+    grow = reach[:, None, None] + extra[None, :, None]
+    low, high = np.min(corners, axis=1), np.max(corners, axis=1)
+    boxes = np.all((low[None] - grow <= points[:, None]) & (points[:, None] <= high[None] + grow), axis=2)
+    distance = np.linalg.norm(points[:, None] - walls.centroid[None], axis=2)
+    direct = np.argwhere(boxes & (distance <= reach[:, None] + walls.bounding_radius[None] + extra[None]))
+    assert len(direct) > 300
+    assert np.array_equal(np.column_stack([p, k]), direct)
+    a, b, c = (np.repeat(corners[None, :, i], len(points), 0).reshape(-1, 3) for i in range(3))
+    q, _ = closest_points_on_triangles(np.repeat(points, len(corners), 0), a, b, c)
+    within = np.argwhere(np.linalg.norm(np.repeat(points, len(corners), 0) - q, axis=1).reshape(len(points), -1)
+                         <= reach[:, None])
+    assert set(map(tuple, within)) <= set(map(tuple, direct)) and len(within) > 50

@@ -215,7 +215,7 @@ def settle(t, seeds, mode, warm, params, bodies, contacts, walls, work, memory, 
     if warm:
         warm_start(chosen, first, second, normal, r_first, r_second, mu_eff, inv_m, inv_i, v, w, lam_n, lam_t)
     done = sweep(chosen, first, second, normal, r_first, r_second, u_wall, target, mu_eff, inv_m, inv_i, v, w,
-                 lam_n, lam_t, sweeps, tol)
+                 lam_n, lam_t, sweeps, tol, True)
     gained = guarded and kinetic_energy(members, inv_m, inv_i, v, w) > energy * (1.0 + ENERGY_TOL) + 1e-300
     if warm and (gained or done == sweeps):
         # the remembered impulses were the wrong start (they can wedge frictional loops, where the
@@ -227,7 +227,7 @@ def settle(t, seeds, mode, warm, params, bodies, contacts, walls, work, memory, 
             lam_n[c] = 0.0
             lam_t[c, 0] = lam_t[c, 1] = lam_t[c, 2] = 0.0
         done += sweep(chosen, first, second, normal, r_first, r_second, u_wall, target, mu_eff, inv_m, inv_i, v, w,
-                      lam_n, lam_t, sweeps, tol)
+                      lam_n, lam_t, sweeps, tol, True)
         gained = guarded and kinetic_energy(members, inv_m, inv_i, v, w) > energy * (1.0 + ENERGY_TOL) + 1e-300
     if gained:
         stats[CLAMPS] += 1

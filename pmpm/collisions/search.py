@@ -63,9 +63,8 @@ def find_contacts(bodies, walls: Walls | None, dt: float, reach: float, restitut
     x, v, radius, free = bodies.x, bodies.v, bodies.radius, bodies.free
     pairs = candidate_pairs(x[:n], radius[:n], reach, around)
     keep, acts, normal, gap, time = narrow.pair_contacts(pairs[:, 0], pairs[:, 1], x, v, radius, free, reach, dt)
-    found = [(keep, acts, pairs[:, 0], pairs[:, 1], np.full(len(pairs), -1), normal, gap, np.ones(len(pairs), bool),
-              time, np.zeros((len(pairs), 3)), np.full(len(pairs), restitution), np.full(len(pairs), friction),
-              np.zeros(len(pairs)))]
+    pair_part = (keep, acts, pairs, normal, gap, time)
+    wall_part = None
     mobile = np.flatnonzero(free[:n])
     if around is not None:
         mobile = np.intersect1d(mobile, around)
@@ -73,11 +72,18 @@ def find_contacts(bodies, walls: Walls | None, dt: float, reach: float, restitut
         travel = walls.travel(dt)
         p, tri = walls.near(x[mobile], radius[mobile] + 0.5 * reach, extra=travel)
         p = mobile[p]
-        keep, acts, normal, gap, face, u_wall, time = narrow.wall_contacts(p, tri, x, v, radius, wall_arrays(walls),
-                                                                           travel, 0.5 * reach, dt)
-        found.append((keep, acts, p, np.full(len(p), n), tri, normal, gap, face, time, u_wall,
-                      walls.restitution[tri], walls.friction[tri], walls.rolling_friction[tri]))
-    dense = 0 < dense_contacts <= sum(int(part[1].sum()) for part in found)
+        wall_part = (p, tri) + narrow.wall_contacts(p, tri, x, v, radius, wall_arrays(walls), travel, 0.5 * reach, dt)
+    dense = 0 < dense_contacts <= int(acts.sum()) + (int(wall_part[3].sum()) if wall_part is not None else 0)
     # a dense step needs only the contacts that can act; an event step all within reach
-    parts = [ContactRecord(*(array[part[1] if dense else part[0]] for array in part[2:])) for part in found]
+    take = np.flatnonzero(acts if dense else keep)
+    k = len(take)
+    parts = [ContactRecord(pairs[take, 0], pairs[take, 1], np.full(k, -1), normal[take], gap[take], np.ones(k, bool),
+                           time[take], np.zeros((k, 3)), np.full(k, restitution), np.full(k, friction), np.zeros(k))]
+    if wall_part is not None:
+        p, tri, keep, acts, normal, gap, face, u_wall, time = wall_part
+        take = np.flatnonzero(acts if dense else keep)
+        p, tri = p[take], tri[take]
+        parts.append(ContactRecord(p, np.full(len(p), n), tri, normal[take], gap[take], face[take], time[take],
+                                   u_wall[take], walls.restitution[tri], walls.friction[tri],
+                                   walls.rolling_friction[tri]))
     return ContactRecord.concatenate(parts), dense

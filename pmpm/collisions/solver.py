@@ -248,7 +248,8 @@ def projected_gauss_seidel(i, j, normal, r_i, r_j, u_wall, target, mu, inv_mass,
     rows = np.arange(len(i), dtype=np.int64)
     return int(jit.kernels().impulses.sweep(rows, as_int(i), as_int(j), as_float(normal), as_float(r_i), as_float(r_j),
                                             as_float(u_wall), as_float(target), as_float(mu), as_float(inv_mass),
-                                            as_float(inv_inertia), v, omega, lam_n, lam_t, int(sweeps), float(tol)))
+                                            as_float(inv_inertia), v, omega, lam_n, lam_t, int(sweeps), float(tol),
+                                            True))
 
 
 def contact_impulse(u, n, inv_mass, k_t, e, mu) -> tuple[np.ndarray, bool]:

@@ -6,7 +6,7 @@ rolling friction, its velocity V and angular velocity Ω about ``center`` (the w
 point p is V + Ω × (p − center)), whether it moves rigidly (a paddle: the triangle itself moves)
 or only its surface moves (a conveyor, a lid: the triangle stays), and whether particles that
 touch it are deposited. A ``Walls`` is not changed after it is built: a rigid wall that moved is
-a new ``Walls`` (``moved``), so what is cached on one (its search tree) stays true.
+a new ``Walls`` (``moved``), so what is cached on one (its search grid) stays true.
 """
 from __future__ import annotations
 
@@ -15,7 +15,6 @@ from functools import cached_property
 from itertools import chain
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from ..arrays import cross, rotate
 from .settings import (DEFAULT_FRICTION, DEFAULT_RESTITUTION, DEFAULT_ROLLING_FRICTION,
@@ -131,27 +130,39 @@ class Walls:
         return np.max([np.linalg.norm(v - self.centroid, axis=1) for v in (self.a, self.b, self.c)], axis=0)
 
     @cached_property
-    def tree(self) -> cKDTree:
-        """k-d tree of the centroids."""
-        return cKDTree(self.centroid)
+    def grid(self) -> tuple:
+        """A uniform grid of the triangles (``wall_grid``): (lower corner (3,), cell size (m),
+        cells per axis (3,), CSR start, triangle indices). Cells about twice the median triangle
+        size, at most 64 per axis."""
+        from .jit import kernels
+        lower = np.min([self.a.min(0), self.b.min(0), self.c.min(0)], axis=0)
+        upper = np.max([self.a.max(0), self.b.max(0), self.c.max(0)], axis=0)
+        extent = float((upper - lower).max())
+        cell = max(2.0 * float(np.median(self.bounding_radius)), extent / 64.0, 1e-12)
+        dims = np.maximum(np.ceil((upper - lower) / cell).astype(np.int64), 1)
+        start, items = kernels().wall_grid.build(self.a, self.b, self.c, lower, cell, dims)
+        return lower, cell, dims, start, items
+
+    @cached_property
+    def box(self) -> tuple[np.ndarray, np.ndarray]:
+        """(m, 3) lower and upper corners of each triangle's bounding box (m)."""
+        return (np.minimum(np.minimum(self.a, self.b), self.c), np.maximum(np.maximum(self.a, self.b), self.c))
 
     def near(self, points: np.ndarray, reach, extra=None) -> tuple[np.ndarray, np.ndarray]:
-        """(point, triangle) index pairs whose spheres meet: |p − centroid| <= reach_p +
-        bounding radius + ``extra`` (per triangle, m; e.g. its travel in a step), sorted by point,
-        then triangle. ``reach`` (m) is a scalar or one value per point."""
+        """(point, triangle) index pairs that may come within ``reach`` (m; a scalar or one per
+        point) of each other when the triangle moves by up to ``extra`` (per triangle, m; e.g. its
+        travel in a step): the triangle's bounding box grown by reach + extra holds the point, and
+        |p − centroid| <= reach + bounding radius + extra. Sorted by point, then triangle."""
         none = np.zeros(0, np.int64)
         if len(points) == 0 or len(self) == 0:
             return none, none
-        reach = np.broadcast_to(np.asarray(reach, float), len(points))
-        bound = self.bounding_radius if extra is None else self.bounding_radius + extra
-        if 4 * len(points) > len(self):  # many points: one search per triangle, within its own bound
-            k, p = flatten(cKDTree(points).query_ball_point(self.centroid, bound + reach.max()))
-        else:
-            p, k = flatten(self.tree.query_ball_point(points, reach + bound.max()))
-        d = points[p] - self.centroid[k]
-        near = np.flatnonzero(np.sum(d * d, axis=1) <= (reach[p] + bound[k]) ** 2)
-        near = near[np.lexsort((k[near], p[near]))]
-        return p[near], k[near]
+        from .jit import kernels
+        reach = np.ascontiguousarray(np.broadcast_to(np.asarray(reach, float), len(points)))
+        extra = np.zeros(len(self)) if extra is None else np.ascontiguousarray(extra, float)
+        lower, cell, dims, start, items = self.grid
+        return kernels().wall_grid.near(np.ascontiguousarray(points, float), reach, extra, float(extra.max()),
+                                        lower, cell, dims, start, items, *self.box, self.centroid,
+                                        self.bounding_radius)
 
 
 def flatten(found) -> tuple[np.ndarray, np.ndarray]:
