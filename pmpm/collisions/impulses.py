@@ -64,8 +64,7 @@ def relative_velocity(a, b, n, r_a, r_b, u_wall, v, w):
 @njit(cache=True, inline="always")
 def project(c, inv_kn, inv_kt, first, second, normal, r_first, r_second, u_wall, target, mu, inv_m, inv_i, v, w,
             lam_n, lam_t):
-    """One projected update of contact c (the closed form, on the impulses so far); returns the
-    largest velocity change it made (m/s)."""
+    """One projected update of contact c (the closed form, on the impulses so far)."""
     a, b = first[c], second[c]
     n = vec(normal, c)
     u = relative_velocity(a, b, n, r_first[c], r_second[c], vec(u_wall, c), v, w)
@@ -85,7 +84,6 @@ def project(c, inv_kn, inv_kt, first, second, normal, r_first, r_second, u_wall,
     lam_n[c] = new_n
     lam_t[c, 0], lam_t[c, 1], lam_t[c, 2] = t0, t1, t2
     apply_impulse(a, b, J, n, r_first[c], r_second[c], inv_m, inv_i, v, w)
-    return norm(J) * (inv_m[a] + inv_m[b])
 
 
 @njit(cache=True)
@@ -141,9 +139,10 @@ def sweep(rows, first, second, normal, r_first, r_second, u_wall, target, mu, in
     previous = 0.0
     done = 0
     for s in range(sweeps):
-        for r in range(count):
-            c = rows[r]
-            before[r, 0], before[r, 1], before[r, 2], before[r, 3] = lam_n[c], lam_t[c, 0], lam_t[c, 1], lam_t[c, 2]
+        if accelerate:
+            for r in range(count):
+                c = rows[r]
+                before[r, 0], before[r, 1], before[r, 2], before[r, 3] = lam_n[c], lam_t[c, 0], lam_t[c, 1], lam_t[c, 2]
         for k in range(n_members):
             for d in range(3):
                 start_v[k, d], start_v[k, 3 + d] = v[members[k], d], w[members[k], d]
