@@ -21,8 +21,6 @@ from .search import wall_arrays
 from .settings import COLD_SWEEPS, CONTACT_TOL, ENERGY_TOL, SWEEP_TOL
 from .stats import CLAMPS, PAIR, RESTING, SWEEPS, WALL
 
-ACCELERATE_DENSE = False
-
 
 def dense_step(bodies, record, warm_n, warm_t, settings, dt, walls, kernels, counters, extra):
     """Solve the contacts of ``record`` at once and move every body to the end of the step.
@@ -67,7 +65,7 @@ def dense_step(bodies, record, warm_n, warm_t, settings, dt, walls, kernels, cou
     scale = max(float(np.abs(closing[rows]).max(initial=0.0)), settings.rest_speed, 1e-300)
     tol = SWEEP_TOL * settings.rest_speed if settings.rest_speed > 0 else 1e-12 * scale
     sweeps = impulses.sweep(rows, first, second, normal, r_first, r_second, record.wall_velocity, target,
-                            record.friction, inv_m, inv_i, v, w, lam_n, lam_t, budget, tol, ACCELERATE_DENSE)
+                            record.friction, inv_m, inv_i, v, w, lam_n, lam_t, budget, tol)
     if not driven.any() and impulses.kinetic_energy(members, inv_m, inv_i, v, w) > energy * (1 + ENERGY_TOL) + 1e-300:
         # Newton's law over simultaneous contacts can make energy: solve inelastically instead
         counters[CLAMPS] += 1
@@ -77,7 +75,7 @@ def dense_step(bodies, record, warm_n, warm_t, settings, dt, walls, kernels, cou
         hit_time[:] = 0.0
         sweeps += impulses.sweep(rows, first, second, normal, r_first, r_second, record.wall_velocity, target,
                                  record.friction, inv_m, inv_i, v, w, lam_n, lam_t, COLD_SWEEPS * settings.dense_sweeps,
-                                 tol, ACCELERATE_DENSE)
+                                 tol)
         impulses.limit_energy(members, inv_m, inv_i, v, w, v0, w0, energy, ENERGY_TOL)
     late = rows[hit_time[rows] > 0]
     shift = (lam_n[late, None] * normal[late] + lam_t[late]) * hit_time[late, None]

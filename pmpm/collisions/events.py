@@ -5,7 +5,7 @@ The loop works on the step's contact arrays (``ContactRecord``): every contact t
 the step was found by the broad search, so an event only recomputes the next contact times of the
 contacts of the particles it changed (their adjacency lists). A counter per particle (``stamp``)
 invalidates queued events once its velocity changes. Events are popped from a binary heap in time
-order (ties first in, first out).
+order (``event_queue``; ties first in, first out).
 
 - An impact approaching faster than ``rest_speed`` gets the closed-form impulse (``impulses.impact``).
 - A slower one settles the resting contacts connected to it at that instant (``settle``): every
@@ -31,6 +31,7 @@ from .contact_times import add, cross, dot, norm, pair_time, scale, sub, surface
 from .impulses import (apply_impulse, impact, kinetic_energy, limit_energy, relative_velocity, roll_resistance, sweep,
                        warm_start)
 from .deposition import deposit, deposit_touching
+from .event_queue import heap_pop, heap_push
 from .settings import APPROACH_TOL, CONTACT_TOL, ENERGY_TOL, GAP_TOL, QUIET
 from .stats import CAPPED, CLAMPS, EVENTS, PAIR, RESTING, SETTLES, SWEEPS, WALL
 RESTING_MODE, CAPPED_MODE = 0, 1
@@ -215,7 +216,7 @@ def settle(t, seeds, mode, warm, params, bodies, contacts, walls, work, memory, 
     if warm:
         warm_start(chosen, first, second, normal, r_first, r_second, mu_eff, inv_m, inv_i, v, w, lam_n, lam_t)
     done = sweep(chosen, first, second, normal, r_first, r_second, u_wall, target, mu_eff, inv_m, inv_i, v, w,
-                 lam_n, lam_t, sweeps, tol, True)
+                 lam_n, lam_t, sweeps, tol)
     gained = guarded and kinetic_energy(members, inv_m, inv_i, v, w) > energy * (1.0 + ENERGY_TOL) + 1e-300
     if warm and (gained or done == sweeps):
         # the remembered impulses were the wrong start (they can wedge frictional loops, where the
@@ -227,7 +228,7 @@ def settle(t, seeds, mode, warm, params, bodies, contacts, walls, work, memory, 
             lam_n[c] = 0.0
             lam_t[c, 0] = lam_t[c, 1] = lam_t[c, 2] = 0.0
         done += sweep(chosen, first, second, normal, r_first, r_second, u_wall, target, mu_eff, inv_m, inv_i, v, w,
-                      lam_n, lam_t, sweeps, tol, True)
+                      lam_n, lam_t, sweeps, tol)
         gained = guarded and kinetic_energy(members, inv_m, inv_i, v, w) > energy * (1.0 + ENERGY_TOL) + 1e-300
     if gained:
         stats[CLAMPS] += 1
@@ -295,49 +296,6 @@ def resolve(t, c, rest_speed, bodies, contacts, walls, stats):
     J, sticking = impact(u, n, k_n, k_t, e[c], mu[c])
     apply_impulse(a, b, J, n, radius[a], rb, inv_m, inv_i, v, w)
     return IMPACT, -1
-
-
-@njit(cache=True)
-def heap_push(heap, size, t, seq, c, stamp_a, stamp_b):
-    """Push an event (time, sequence, contact, stamps) on the binary heap; returns (heap, size)."""
-    if size == heap.shape[0]:
-        bigger = np.empty((2 * size + 16, 5))
-        bigger[:size] = heap[:size]
-        heap = bigger
-    i = size
-    heap[i, 0], heap[i, 1], heap[i, 2], heap[i, 3], heap[i, 4] = t, seq, c, stamp_a, stamp_b
-    while i > 0:
-        parent = (i - 1) // 2
-        if heap[i, 0] < heap[parent, 0] or (heap[i, 0] == heap[parent, 0] and heap[i, 1] < heap[parent, 1]):
-            for d in range(5):
-                heap[i, d], heap[parent, d] = heap[parent, d], heap[i, d]
-            i = parent
-        else:
-            break
-    return heap, size + 1
-
-
-@njit(cache=True)
-def heap_pop(heap, size):
-    """The earliest event: (time, contact, stamp_a, stamp_b, new size)."""
-    t, c, sa, sb = heap[0, 0], int(heap[0, 2]), int(heap[0, 3]), int(heap[0, 4])
-    size -= 1
-    if size > 0:
-        for d in range(5):
-            heap[0, d] = heap[size, d]
-        i = 0
-        while True:
-            left, smallest = 2 * i + 1, i
-            for child in (left, left + 1):
-                if child < size and (heap[child, 0] < heap[smallest, 0] or (
-                        heap[child, 0] == heap[smallest, 0] and heap[child, 1] < heap[smallest, 1])):
-                    smallest = child
-            if smallest == i:
-                break
-            for d in range(5):
-                heap[i, d], heap[smallest, d] = heap[smallest, d], heap[i, d]
-            i = smallest
-    return t, c, sa, sb, size
 
 
 @njit(cache=True)

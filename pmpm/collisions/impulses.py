@@ -88,7 +88,7 @@ def project(c, inv_kn, inv_kt, first, second, normal, r_first, r_second, u_wall,
 
 @njit(cache=True)
 def sweep(rows, first, second, normal, r_first, r_second, u_wall, target, mu, inv_m, inv_i, v, w,
-          lam_n, lam_t, sweeps, tol, accelerate):
+          lam_n, lam_t, sweeps, tol):
     """Projected Gauss–Seidel over contacts ``rows`` until a sweep changes no contact-point velocity
     (|Δv| + r |Δω| per component) by more than ``tol`` (m/s), or ``sweeps`` sweeps are done;
     returns the sweeps made.
@@ -100,8 +100,7 @@ def sweep(rows, first, second, normal, r_first, r_second, u_wall, target, mu, in
     Notes
     -----
     Plain sweeps converge slowly where rotation couples the friction of a sphere's contacts (a
-    ball wedged between a floor and a wall: 0.998 per sweep). With ``accelerate``, each sweep is
-    followed by the
+    ball wedged between a floor and a wall: 0.998 per sweep). Each sweep is followed by the
     nonsmooth nonlinear conjugate gradient step of Silcowski (2011, as in Tonge's thesis): with
     r_k the change the sweep made to the impulses, β = |r_k|² / |r_{k−1}|² and, if β <= 1,
     impulses += β p, p ← β p − r_k (else p ← 0, a restart). The sweep after it projects again, and
@@ -139,10 +138,9 @@ def sweep(rows, first, second, normal, r_first, r_second, u_wall, target, mu, in
     previous = 0.0
     done = 0
     for s in range(sweeps):
-        if accelerate:
-            for r in range(count):
-                c = rows[r]
-                before[r, 0], before[r, 1], before[r, 2], before[r, 3] = lam_n[c], lam_t[c, 0], lam_t[c, 1], lam_t[c, 2]
+        for r in range(count):
+            c = rows[r]
+            before[r, 0], before[r, 1], before[r, 2], before[r, 3] = lam_n[c], lam_t[c, 0], lam_t[c, 1], lam_t[c, 2]
         for k in range(n_members):
             for d in range(3):
                 start_v[k, d], start_v[k, 3 + d] = v[members[k], d], w[members[k], d]
@@ -159,8 +157,6 @@ def sweep(rows, first, second, normal, r_first, r_second, u_wall, target, mu, in
             largest = max(largest, change)
         if largest <= tol:
             break
-        if not accelerate:
-            continue
         size = 0.0
         for r in range(count):
             c = rows[r]

@@ -18,7 +18,8 @@ from pathlib import Path
 from types import SimpleNamespace
 
 HERE = Path(__file__).resolve().parent
-COMPILED = ("contact_times", "deposition", "events", "impulses", "narrow", "settings", "stats", "wall_grid")  # and what they import
+COMPILED = ("contact_times", "deposition", "event_queue", "events", "impulses", "narrow", "settings", "stats",
+            "wall_grid")  # and what they import
 
 
 def clear_stale_cache() -> None:

@@ -86,7 +86,7 @@ class Bodies:
 
 
 @dataclass
-class StepResult:
+class ContactStep:
     """What a step returns besides the particles it moved.
 
     stats : dict of counts (``stats.NAMES`` and ``stats.EXTRA``);
@@ -100,7 +100,7 @@ class StepResult:
 
 
 def advance_with_collisions(state: ParticleState, walls: Walls | None, dt: float, settings: CollisionSettings,
-                            memory: ContactMemory | None = None) -> StepResult:
+                            memory: ContactMemory | None = None) -> ContactStep:
     """Move every particle over ``dt`` with its contacts resolved (see the module's docstring).
 
     ``state`` is updated in place (x, v, omega, deposited). Free particles move with constant
@@ -117,7 +117,7 @@ def advance_with_collisions(state: ParticleState, walls: Walls | None, dt: float
     counters, extra = new_counters(), {}
     n = len(state)
     if n == 0:
-        return StepResult(as_dict(counters, extra), memory, walls_after)
+        return ContactStep(as_dict(counters, extra), memory, walls_after)
     kernels = jit.kernels()
     start = Bodies.of(state)
     walls = walls if walls is not None and len(walls) and start.free.any() else None
@@ -150,7 +150,7 @@ def advance_with_collisions(state: ParticleState, walls: Walls | None, dt: float
     state.v[free] = bodies.v[:n][free]
     state.omega[:] = bodies.w[:n]
     state.deposited[:] = bodies.deposited[:n]
-    return StepResult(as_dict(counters, extra), ContactMemory.remember(record, state.id, lam_n, lam_t), walls_after)
+    return ContactStep(as_dict(counters, extra), ContactMemory.remember(record, state.id, lam_n, lam_t), walls_after)
 
 
 def event_step(bodies, record, warm_n, warm_t, lam_n, lam_t, settings, dt, speed_bound, walls, kernels,
@@ -248,8 +248,7 @@ def projected_gauss_seidel(i, j, normal, r_i, r_j, u_wall, target, mu, inv_mass,
     rows = np.arange(len(i), dtype=np.int64)
     return int(jit.kernels().impulses.sweep(rows, as_int(i), as_int(j), as_float(normal), as_float(r_i), as_float(r_j),
                                             as_float(u_wall), as_float(target), as_float(mu), as_float(inv_mass),
-                                            as_float(inv_inertia), v, omega, lam_n, lam_t, int(sweeps), float(tol),
-                                            True))
+                                            as_float(inv_inertia), v, omega, lam_n, lam_t, int(sweeps), float(tol)))
 
 
 def contact_impulse(u, n, inv_mass, k_t, e, mu) -> tuple[np.ndarray, bool]:
