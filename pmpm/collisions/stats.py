@@ -1,4 +1,4 @@
-"""The counters a step reports (``StepResult.stats``): names, and their slots in the int64 array
+"""The counters a step reports (``ContactStep.stats``): names, and their slots in the int64 array
 the compiled kernels count into."""
 from __future__ import annotations
 
