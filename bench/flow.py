@@ -90,7 +90,7 @@ def worker(args):
     if args.ghia:
         dt, steps = args.ghia_dt, int(round(args.ghia_time / args.ghia_dt))
         start = time.perf_counter()
-        fc.run(solver, dt, steps, state)
+        state = fc.run(solver, dt, steps, state)
         elapsed = time.perf_counter() - start
         deviation = fc.ghia_deviation(solver, state)
         if comm.rank == 0:
@@ -98,7 +98,7 @@ def worker(args):
                                           "t_end": steps * dt, "steps": steps, "seconds": elapsed}), flush=True)
         return
     dt = 0.5 / n
-    solver.step(state, dt, step=0, time=0.0)                 # assembles the momentum matrices
+    state = solver.step(state, dt, step=0, time=0.0)         # assembles the momentum matrices
     clock = {}
     instrument(solver, clock)
     rows, iterations = [], []
@@ -107,14 +107,14 @@ def worker(args):
         clock.update({"pressure KSP": 0.0, "momentum KSP": 0.0})
         comm.Barrier()
         t0 = time.perf_counter()
-        solver.step(state, dt, step=k, time=k * dt)
+        state = solver.step(state, dt, step=k, time=k * dt)
         t1 = time.perf_counter()
         predictor = clock["pressure KSP start"] - t0 - clock["momentum KSP"]
         # the Rhie–Chow fluxes lie between the last momentum solve and the pressure solve
         fluxes = clock["pressure KSP start"] - clock["momentum KSP end"]
         rows.append([predictor - fluxes, clock["momentum KSP"], clock["pressure KSP"] + fluxes,
                      t1 - clock["pressure KSP end"], t1 - t0])
-        iterations.append(solver.last_pressure_iterations)
+        iterations.append(solver.pressure.iterations)
     rows = np.ascontiguousarray(rows, dtype=float)
     comm.Allreduce(MPI.IN_PLACE, rows, op=MPI.MAX)           # the slowest rank's time of each stage
     peak = comm.allreduce(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024)

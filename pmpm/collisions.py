@@ -28,7 +28,7 @@ that starts with many contacts solves them all at once (time-stepping contact dy
 from __future__ import annotations
 
 import heapq
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from itertools import chain
 
 import numpy as np
@@ -140,12 +140,14 @@ class Walls:
         ctr[moving] = centre + shift
         return a, b, c, n, ctr
 
-    def move_rigid(self, dt: float) -> None:
-        """Move the rigid triangles by one step (their geometry at ``dt``)."""
+    def moved(self, dt: float) -> "Walls":
+        """These walls a step of ``dt`` later: the rigid triangles moved (a new object; this one stays)."""
         k = np.flatnonzero(self.moves)
-        if len(k):
-            self.a[k], self.b[k], self.c[k], self.normal[k], self.center[k] = self.geometry_at(k, dt)
-            self._search = None
+        if len(k) == 0:
+            return self
+        a, b, c, normal, center = self.a.copy(), self.b.copy(), self.c.copy(), self.normal.copy(), self.center.copy()
+        a[k], b[k], c[k], normal[k], center[k] = self.geometry_at(k, dt)
+        return replace(self, a=a, b=b, c=c, normal=normal, center=center)
 
     def search_tree(self, dt: float) -> tuple:
         """Centroids (m, 3), bounding radii (m,) and the distance each triangle may move in a step
@@ -414,13 +416,43 @@ def contact_impulse(u, n, inv_mass, k_t, e, mu) -> tuple[np.ndarray, bool]:
 # ----------------------------------------------------------------------------------------------
 # The event loop
 # ----------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class ContactMemory:
+    """What the contact solver carries from one step to the next: the impulses of the last dense
+    step (a warm start for the next), by contact key (particle ids, or id and wall triangle), sorted."""
+
+    keys: np.ndarray          # (m,) int64
+    normal: np.ndarray        # (m,) normal impulse on the key's first particle (N s)
+    tangential: np.ndarray    # (m, 3) tangential impulse on it (N s)
+    sign: np.ndarray          # (m,) +1, or −1 where the contact's i is the key's second particle
+
+    def to_arrays(self) -> dict:
+        return {"keys": self.keys, "normal": self.normal, "tangential": self.tangential, "sign": self.sign}
+
+    @classmethod
+    def from_arrays(cls, arrays: dict) -> "ContactMemory":
+        return cls(np.asarray(arrays["keys"], np.int64), np.asarray(arrays["normal"], float),
+                   np.asarray(arrays["tangential"], float).reshape(-1, 3), np.asarray(arrays["sign"], float))
+
+
+@dataclass(frozen=True)
+class ContactStep:
+    """What a step of contacts returns: its counts, the solver's memory for the next step, and the
+    walls at the end of the step (rigid ones moved)."""
+
+    stats: dict
+    memory: ContactMemory | None
+    walls: Walls | None
+
+
 def advance_with_collisions(state: ParticleState, walls: Walls | None, dt: float,
-                            settings: CollisionSettings) -> dict:
-    """Move every particle over ``dt`` with its contacts resolved in time order.
+                            settings: CollisionSettings, memory: ContactMemory | None = None) -> ContactStep:
+    """Move every particle over ``dt`` with its contacts resolved in time order (``state`` in place).
 
     Free particles move with constant velocity between contacts; fixed and deposited ones stay
     put, prescribed ones keep their velocity (all three have infinite mass); rigid walls move at
-    the end of the step (see ``EventLoop`` for the algorithm). Returns counts of the step:
+    the end of the step (see ``EventLoop`` for the algorithm). ``memory``: the last step's
+    (``ContactStep.memory``). Counts of the step, in ``ContactStep.stats``:
     particle_collisions, wall_collisions, resting_contacts (solved at its start), events,
     deposited, fallbacks (ill-posed contact sets solved by sweeps) and capped (bool: the event
     budget ran out and the step ended with every contact left made inelastic).
@@ -429,8 +461,9 @@ def advance_with_collisions(state: ParticleState, walls: Walls | None, dt: float
     a torque μ_r N r opposes rolling; with the rolling constraint this slows the rolling velocity
     by (5/7) μ_r J_n / m (on a flat floor: deceleration (5/7) μ_r g) and the spin with it.
     """
-    loop = EventLoop(state, walls, dt, settings)
-    return loop.run()
+    loop = EventLoop(state, walls, dt, settings, memory)
+    stats = loop.run()
+    return ContactStep(stats, loop.memory, walls.moved(dt) if walls is not None else None)
 
 
 class EventLoop:
@@ -456,8 +489,9 @@ class EventLoop:
        impacts with their restitution, resting ones inelastic; events would cascade there.
     """
 
-    def __init__(self, state, walls, dt, settings):
+    def __init__(self, state, walls, dt, settings, memory=None):
         self.state, self.walls, self.dt, self.settings = state, walls, float(dt), settings
+        self.remembered, self.memory = memory, None   # the last step's memory, and this step's
         self.end = self.dt * (1 - 1e-9)
         n = len(state)
         self.free = state.movable.copy()          # whose velocities respond to contacts
@@ -492,7 +526,6 @@ class EventLoop:
                 self.dense_step(contacts)
                 self.finish()
                 return self.stats
-        self.state._dense_memory = None  # impulses are remembered from one dense step to the next only
         if self.settings.rest_speed > 0:
             self.settle()
         self.schedule_all()
@@ -520,8 +553,6 @@ class EventLoop:
         self.advance_to(np.arange(len(state)), self.dt)
         free = state.motion == FREE  # deposited ones included: they now rest
         state.v[free] = self.v[free]
-        if self.walls is not None and len(self.walls):
-            self.walls.move_rigid(self.dt)
 
     # -- resting contacts, all at once ------------------------------------------------------------
     def touching_contacts(self, t, reach=0.0, members=None, closing_in=None) -> dict:
@@ -757,7 +788,7 @@ class EventLoop:
         tol = DENSE_TOL * s.rest_speed if s.rest_speed > 0 else 1e-9 * (np.abs(closing).max() + 1e-300)
         # without the previous step's impulses (the first dense step, a restart) a bed starts from
         # nothing: let the sweeps build its contact forces up once
-        budget = s.dense_sweeps if getattr(state, "_dense_memory", None) is not None else COLD_SWEEPS * s.dense_sweeps
+        budget = s.dense_sweeps if self.remembered is not None else COLD_SWEEPS * s.dense_sweeps
         sweeps = projected_gauss_seidel(i, j, normal, r_i, r_j, u_wall, target, mu, inv_m, inv_i, V, W,
                                         lam_n, lam_t, budget, tol)
         self.v[:] = V[:n]
@@ -792,10 +823,10 @@ class EventLoop:
         """Normal and tangential impulses (on i) of these contacts in the previous dense step."""
         m = len(c["i"])
         lam_n, lam_t = np.zeros(m), np.zeros((m, 3))
-        memory = getattr(self.state, "_dense_memory", None)
-        if memory is None or len(memory[0]) == 0 or m == 0:
+        memory = self.remembered
+        if memory is None or len(memory.keys) == 0 or m == 0:
             return lam_n, lam_t
-        keys, old_n, old_t, old_sign = memory
+        keys, old_n, old_t, old_sign = memory.keys, memory.normal, memory.tangential, memory.sign
         now = self.contact_keys(c)
         at = np.minimum(np.searchsorted(keys, now), len(keys) - 1)
         found = keys[at] == now
@@ -815,7 +846,7 @@ class EventLoop:
     def remember(self, c, lam_n, lam_t):
         keys = self.contact_keys(c)
         order = np.argsort(keys, kind="stable")
-        self.state._dense_memory = (keys[order], lam_n[order], lam_t[order], self.key_sign(c)[order])
+        self.memory = ContactMemory(keys[order], lam_n[order], lam_t[order], self.key_sign(c)[order])
 
     # -- impacts, in time order -------------------------------------------------------------------
     def push(self, times, kind, i, others, start):
@@ -999,7 +1030,7 @@ class EventLoop:
         dv = -rolling * (slow / np.maximum(speed, 1e-300))[:, None]
         n_all = len(self.state)
         self.v += bincount3(i, dv, n_all)
-        self.state.omega += bincount3(i, cross(n, dv) / self.radius[i, None], n_all)
+        self.state.omega[:] += bincount3(i, cross(n, dv) / self.radius[i, None], n_all)
 
 
 def unique_wall_contacts(c) -> dict:

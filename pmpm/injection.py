@@ -108,23 +108,24 @@ def rotation_matrix(angle_vector: np.ndarray) -> np.ndarray:
 
 
 class Injector:
-    """One [[injection]] table: releases ``count`` particles at start, start + interval, ... <= stop."""
+    """One [[injection]] table: releases ``count`` particles at start, start + interval, ... <= stop.
+    Holds the table only; which release is next is part of the run state."""
 
     def __init__(self, section, index: int, seed: int):
         self.section, self.index, self.seed = section, index, seed
-        self.next_release = 0  # index of the next release
 
     def release_time(self, k: int) -> float:
         return self.section.start + k * self.section.interval
 
-    def due(self, time_end: float) -> NewParticles:
-        """Particles of every release with time <= time_end not yet released."""
+    def due(self, next_release: int, time_end: float) -> tuple[NewParticles, int]:
+        """The particles of every release from ``next_release`` on with time <= time_end, and the
+        index of the release after them."""
         parts = []
         s = self.section
-        while self.release_time(self.next_release) <= min(time_end, s.stop) + 1e-12 * max(1.0, abs(time_end)):
-            parts.append(self.release(self.next_release))
-            self.next_release += 1
-        return NewParticles.concatenate(parts)
+        while self.release_time(next_release) <= min(time_end, s.stop) + 1e-12 * max(1.0, abs(time_end)):
+            parts.append(self.release(next_release))
+            next_release += 1
+        return NewParticles.concatenate(parts), next_release
 
     def release(self, k: int) -> NewParticles:
         s, n = self.section, self.section.count
@@ -155,5 +156,5 @@ class Injector:
                             np.full(n, s.density), np.zeros(n, np.int8))
 
 
-def build_injectors(case) -> list[Injector]:
-    return [Injector(section, i, case.run.seed) for i, section in enumerate(case.injections)]
+def build_injectors(case) -> tuple[Injector, ...]:
+    return tuple(Injector(section, i, case.run.seed) for i, section in enumerate(case.injections))

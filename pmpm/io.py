@@ -20,10 +20,9 @@ os.environ.setdefault("H5PY_ALWAYS_USE_MPI", "1")  # Debian's h5py loads its MPI
 import h5py  # noqa: E402
 
 from .errors import CaseError  # noqa: E402
+from .mesh import VTK_ORDER  # noqa: E402
 from .parallel import agree  # noqa: E402
 
-# PETSc → VTK vertex order (a permutation that is its own inverse)
-VTK_ORDER = {"hex": [0, 3, 2, 1, 4, 5, 6, 7], "tet": [1, 0, 2, 3]}
 XDMF_TOPOLOGY = {"hex": "Hexahedron", "tet": "Tetrahedron"}
 RESULT_FILES = ("particles.csv", "fields.h5", "fields.xdmf", "summary.json", "checkpoint.h5")
 
@@ -237,6 +236,30 @@ class ParticleWriter:
         formats = ["%.9g", "%d"] + ["%.12g"] * (table.shape[1] - 2)
         with open(self.path, "a") as f:
             np.savetxt(f, table, fmt=formats, delimiter=",")
+
+
+@dataclass
+class Writers:
+    """The files of one output time: particles.csv rows and a fields.h5 group. Collective."""
+
+    particles: ParticleWriter
+    fields: FieldWriter
+    with_fluid: bool
+
+    @classmethod
+    def open(cls, comm, folder: Path, mesh, with_fluid: bool) -> "Writers":
+        return cls(ParticleWriter(comm, folder, with_fluid), FieldWriter(comm, folder, mesh, with_fluid), with_fluid)
+
+    def write(self, state) -> None:
+        """Collective. One output time of a ``pmpm.state.RunState``."""
+        particles = state.particles
+        fields = {}
+        if self.with_fluid:
+            fields = {"velocity": state.fluid.u, "pressure": state.fluid.p, "volume_fraction": state.volume_fraction}
+        self.particles.write(state.time, particles, state.hydro_force, state.hydro_torque)
+        arrays = {"id": particles.id, "position": particles.x, "velocity": particles.v,
+                  "angular_velocity": particles.omega, "radius": particles.radius, "density": particles.density}
+        self.fields.write(state.time, fields, arrays)
 
 
 def write_summary(comm, folder: Path, summary: dict) -> None:

@@ -24,7 +24,7 @@ from petsc4py import PETSc
 from scipy.spatial import cKDTree
 
 from .errors import CaseError
-from .parallel import agree
+from .parallel import agree, allreduce_sum
 
 BOX_BOUNDARIES = ("xmin", "xmax", "ymin", "ymax", "zmin", "zmax")
 UNNAMED_BOUNDARY = "boundary"
@@ -38,8 +38,9 @@ VERTICES_PER_CELL = {"hex": 8, "tet": 4}
 # meshio cell block names of the volume and surface elements pmpm reads
 MESHIO_VOLUME = {"hexahedron": "hex", "tetra": "tet"}
 MESHIO_SURFACE = ("triangle", "quad")
-# meshio/VTK/gmsh vertex order → PETSc order (STACK.md §2.1)
-FROM_VTK = {"hex": np.array([0, 3, 2, 1, 4, 5, 6, 7]), "tet": np.array([1, 0, 2, 3])}
+# the vertex order of meshio, VTK and gmsh against PETSc's: a permutation that is its own inverse,
+# so it maps either order to the other
+VTK_ORDER = {"hex": np.array([0, 3, 2, 1, 4, 5, 6, 7]), "tet": np.array([1, 0, 2, 3])}
 
 
 class Mesh:
@@ -327,6 +328,11 @@ class Mesh:
                     break
         return found
 
+    def inside_domain(self, points: np.ndarray) -> np.ndarray:
+        """Collective. (n,) bool: the point lies in some rank's owned cells."""
+        found = (self.find_owned_cells(points) >= 0).astype(np.int64)
+        return allreduce_sum(self.comm, found) > 0
+
     def contains(self, cells: np.ndarray, points: np.ndarray) -> np.ndarray:
         """Local. Whether each point lies in (or on) the cell beside it; arrays broadcast together."""
         cells, points = np.broadcast_arrays(cells[..., None], points)
@@ -543,7 +549,7 @@ def read_mesh_file(path: Path):
     xyz = np.asarray(data.points, float)[used]
     if xyz.shape[1] == 2:
         raise CaseError(f"{path}: a 2-D mesh; pmpm needs a 3-D volume mesh")
-    cells = renumber[cells][:, FROM_VTK[cell_type]]
+    cells = renumber[cells][:, VTK_ORDER[cell_type]]
     if cell_type == "tet":
         cells = orient_tetrahedra(xyz, cells)
     # named surface elements (gmsh physical groups of dimension 2)

@@ -21,13 +21,11 @@ G = 9.81
 def particles(x, v=None, radius=0.01, density=1000.0, omega=None, motion=None) -> ParticleState:
     x = np.array(x, float).reshape(-1, 3)
     n = len(x)
-    state = ParticleState.empty()
-    state.append(np.arange(n), x, np.zeros((n, 3)) if v is None else np.array(v, float).reshape(n, 3),
+    return ParticleState.empty().appended(np.arange(n), x, np.zeros((n, 3)) if v is None else np.array(v, float).reshape(n, 3),
                  np.zeros((n, 3)) if omega is None else np.array(omega, float).reshape(n, 3),
                  np.broadcast_to(np.asarray(radius, float), n).copy(),
                  np.broadcast_to(np.asarray(density, float), n).copy(),
                  np.zeros(n, np.int8) if motion is None else np.asarray(motion, np.int8))
-    return state
 
 
 def rectangle(origin, edge1, edge2, **kwargs) -> Walls:
@@ -46,10 +44,11 @@ def kinetic(state) -> float:
                  + 0.5 * np.sum(state.inertia * np.sum(state.omega ** 2, 1)))
 
 
-def step_under_gravity(state, walls, dt, settings, gravity=(0.0, 0.0, -G)):
-    """What the time loop does: v += g dt for the free particles, then move with collisions."""
+def step_under_gravity(state, walls, dt, settings, memory=None, gravity=(0.0, 0.0, -G)):
+    """What the time loop does: v += g dt for the free particles, then move with collisions (the
+    contact solver's ``memory`` from the last step). Returns the ContactStep."""
     state.v[state.movable] += np.asarray(gravity) * dt
-    return advance_with_collisions(state, walls, dt, settings)
+    return advance_with_collisions(state, walls, dt, settings, memory)
 
 
 # -- particle-particle -------------------------------------------------------------------------
@@ -64,7 +63,7 @@ def test_head_on(e, densities):
     p_before = state.mass @ state.v
     vc = (m1 * u1 + m2 * u2) / (m1 + m2)
     ke_rel_before = 0.5 * m1 * (u1 - vc) ** 2 + 0.5 * m2 * (u2 - vc) ** 2
-    stats = advance_with_collisions(state, None, 0.1, CollisionSettings(restitution=e, friction=0.3))
+    stats = advance_with_collisions(state, None, 0.1, CollisionSettings(restitution=e, friction=0.3)).stats
     v1 = (m1 * u1 + m2 * u2 + m2 * e * (u2 - u1)) / (m1 + m2)
     v2 = (m1 * u1 + m2 * u2 + m1 * e * (u1 - u2)) / (m1 + m2)
     assert stats["particle_collisions"] == 1
@@ -83,7 +82,7 @@ def test_newtons_cradle():
     x = [[-0.05, 0, 0]] + [[2 * r * k, 0, 0] for k in range(5)]
     v = [[1.0, 0, 0]] + [[0, 0, 0]] * 5
     state = particles(x, v, radius=r)
-    stats = advance_with_collisions(state, None, 0.05, CollisionSettings(restitution=1.0, friction=0.0))
+    stats = advance_with_collisions(state, None, 0.05, CollisionSettings(restitution=1.0, friction=0.0)).stats
     assert stats["particle_collisions"] == 5
     assert np.allclose(state.v[:-1], 0.0, atol=1e-12)
     assert np.allclose(state.v[-1], [1.0, 0, 0], atol=1e-12)
@@ -159,7 +158,7 @@ def test_oblique_wall_impact(mu):
 def test_shared_edge_collides_once():
     """Straight onto the diagonal shared by the floor's two triangles: one impulse, v_z = e v."""
     state = particles([[0.3, 0.3, 0.02]], [[0, 0, -1.0]])
-    stats = advance_with_collisions(state, floor(restitution=0.5), 0.05, CollisionSettings())
+    stats = advance_with_collisions(state, floor(restitution=0.5), 0.05, CollisionSettings()).stats
     assert stats["wall_collisions"] == 1
     assert np.allclose(state.v[0], [0, 0, 0.5], atol=1e-12)
 
@@ -186,8 +185,9 @@ def test_bouncing_ball_rebound_heights():
     state = particles([[0, 0, 0.3 + r]], radius=r)
     walls, settings = floor(restitution=e), CollisionSettings(rest_speed=3 * G * dt)
     apexes, rising, top = [], False, 0.0
+    memory = None
     for _ in range(10000):
-        step_under_gravity(state, walls, dt, settings)
+        memory = step_under_gravity(state, walls, dt, settings, memory).memory
         if state.v[0, 2] > 0:
             rising, top = True, max(top, state.x[0, 2])
         elif rising:
@@ -203,8 +203,10 @@ def test_resting_ball_does_not_sink_or_gain_energy():
     state = particles([[0.1, 0.2, r]], radius=r)
     walls, settings = floor(restitution=0.9), CollisionSettings(rest_speed=3 * G * dt)
     lowest, highest, energy = r, r, 0.0
+    memory = None
     for _ in range(10000):
-        stats = step_under_gravity(state, walls, dt, settings)
+        result = step_under_gravity(state, walls, dt, settings, memory)
+        memory, stats = result.memory, result.stats
         lowest, highest = min(lowest, state.x[0, 2]), max(highest, state.x[0, 2])
         energy = max(energy, kinetic(state))
         assert not stats["capped"]
@@ -225,8 +227,10 @@ def test_resting_column_and_bed():
     start = state.x.copy()
     walls = floor(restitution=0.9, friction=0.5)
     settings = CollisionSettings(restitution=0.9, friction=0.5, rest_speed=3 * G * dt)
+    memory = None
     for _ in range(2000):
-        stats = step_under_gravity(state, walls, dt, settings)
+        result = step_under_gravity(state, walls, dt, settings, memory)
+        memory, stats = result.memory, result.stats
     dist = np.linalg.norm(state.x[:, None] - state.x[None], axis=2) + np.eye(len(state)) * 1e9
     assert dist.min() > 2 * r * (1 - 1e-6)
     assert state.x[:, 2].min() > r * (1 - 2e-6)
@@ -247,8 +251,10 @@ def test_ball_dropped_on_a_resting_column():
         return kinetic(state) + G * float(state.mass @ state.x[:, 2])
 
     previous = energy()
+    memory = None
     for _ in range(600):
-        stats = step_under_gravity(state, walls, dt, settings)
+        result = step_under_gravity(state, walls, dt, settings, memory)
+        memory, stats = result.memory, result.stats
         now = energy()
         assert now <= previous + 1e-12 * abs(previous)
         previous = now
@@ -289,8 +295,10 @@ def test_pile_in_a_box_loses_energy():
         return kinetic(state) + G * float(state.mass @ state.x[:, 2])
 
     previous = start = energy()
+    memory = None
     for _ in range(500):
-        stats = step_under_gravity(state, walls, dt, settings)
+        result = step_under_gravity(state, walls, dt, settings, memory)
+        memory, stats = result.memory, result.stats
         now = energy()
         assert now <= previous + 1e-9 * abs(previous)
         previous = now
@@ -313,8 +321,9 @@ def test_rolling_down_a_slope():
     start = -0.05 * down + r * normal + np.array([0, 0.02, 0])
     state = particles([start], radius=r)
     settings = CollisionSettings(rest_speed=3 * G * dt)
+    memory = None
     for _ in range(2000):
-        step_under_gravity(state, walls, dt, settings)
+        memory = step_under_gravity(state, walls, dt, settings, memory).memory
         assert abs((state.x[0] - walls.a[0]) @ normal - r) < 1e-6 * 2 * r
     t = 2000 * dt
     speed = state.v[0] @ down
@@ -329,8 +338,9 @@ def test_rolling_friction_deceleration():
     state = particles([[-0.5, 0, r]], [[v0, 0, 0]], radius=r, omega=[[0, v0 / r, 0]])
     walls = floor(restitution=0.5, friction=0.5, rolling_friction=mu_r)
     settings = CollisionSettings(rest_speed=3 * G * dt)
+    memory = None
     for _ in range(5000):
-        step_under_gravity(state, walls, dt, settings)
+        memory = step_under_gravity(state, walls, dt, settings, memory).memory
     t = 5000 * dt
     assert (v0 - state.v[0, 0]) / t == pytest.approx(5 / 7 * mu_r * G, rel=0.01)
     assert state.omega[0, 1] * r == pytest.approx(state.v[0, 0], rel=1e-9)
@@ -357,7 +367,8 @@ def test_rigid_paddle_hits_a_ball():
                        velocity=(U, 0, 0), rigid=True)
     assert np.allclose(paddle.normal, [1, 0, 0])
     state = particles([[r + 0.005, 0, 0]], radius=r)
-    stats = advance_with_collisions(state, paddle, dt, CollisionSettings())
+    result = advance_with_collisions(state, paddle, dt, CollisionSettings())
+    stats, paddle = result.stats, result.walls
     assert stats["wall_collisions"] == 1
     assert np.allclose(state.v[0], [(1 + e) * U, 0, 0], rtol=0, atol=1e-12)
     assert np.allclose(paddle.a[:, 0], U * dt, atol=1e-15)
@@ -376,7 +387,8 @@ def test_rotating_paddle_hits_a_ball():
     settings = CollisionSettings(restitution=e, friction=0.0)
     total = 0
     for _ in range(5):
-        total += advance_with_collisions(state, paddle, dt, settings)["wall_collisions"]
+        result = advance_with_collisions(state, paddle, dt, settings)
+        total, paddle = total + result.stats["wall_collisions"], result.walls
     assert total == 1
     contact_radius = np.hypot(rho, r)
     assert np.linalg.norm(state.v[0]) == pytest.approx((1 + e) * omega * rho, rel=2e-2)
@@ -401,7 +413,7 @@ def test_event_cap_finishes_the_step():
     r = 0.01
     state = particles([[0, 0, r], [0, 0, 3 * r], [0, 0, 5 * r], [0, 0, 7 * r]], [[0, 0, -0.1]] * 4, radius=r)
     settings = CollisionSettings(restitution=0.0, max_events_per_particle=0, min_events=3)
-    stats = advance_with_collisions(state, floor(restitution=0.0), 1e-3, settings)
+    stats = advance_with_collisions(state, floor(restitution=0.0), 1e-3, settings).stats
     assert stats["capped"] and stats["events"] == 3
     assert np.all(np.diff(state.v[:, 2]) >= -1e-9) and state.v[0, 2] >= -1e-9
 
@@ -415,7 +427,7 @@ def test_dense_step_touching_pair(e):
     state = particles([[0, 0, 0], [2 * r, 0, 0]], [[u / 2, 0, 0], [-u / 2, 0, 0]], radius=r, density=[1000.0, 3000.0])
     p0 = state.mass @ state.v
     stats = advance_with_collisions(state, None, dt, CollisionSettings(restitution=e, friction=0.3, rest_speed=0.01,
-                                                                         dense_contacts=1))
+                                                                         dense_contacts=1)).stats
     assert stats["dense_steps"] == 1 and stats["particle_collisions"] == 1
     assert state.v[1, 0] - state.v[0, 0] == pytest.approx(e * u, rel=1e-12)
     assert np.allclose(state.mass @ state.v, p0, rtol=0, atol=1e-15)
@@ -428,7 +440,7 @@ def test_dense_step_gap_closing_within_the_step():
     r, u, dt, g, e = 0.01, 1.0, 1e-3, 3e-4, 0.8
     state = particles([[0, 0, r + g]], [[0, 0, -u]], radius=r)
     settings = CollisionSettings(restitution=e, friction=0.3, rest_speed=0.01, dense_contacts=1)
-    stats = advance_with_collisions(state, floor(restitution=e), dt, settings)
+    stats = advance_with_collisions(state, floor(restitution=e), dt, settings).stats
     assert stats["dense_steps"] == 1 and stats["wall_collisions"] == 1
     assert state.x[0, 2] - r == pytest.approx(e * (u * dt - g), rel=1e-9)
 
@@ -442,8 +454,10 @@ def test_dense_bed_rests():
     state = particles(x, radius=r)
     walls = box(side, 0.5, restitution=0.5, friction=0.5)
     settings = CollisionSettings(restitution=0.5, friction=0.5, rest_speed=3 * G * dt)
+    memory = None
     for _ in range(200):
-        stats = step_under_gravity(state, walls, dt, settings)
+        result = step_under_gravity(state, walls, dt, settings, memory)
+        memory, stats = result.memory, result.stats
         assert stats["dense_steps"] == 1 and not stats["capped"]
     assert np.abs(state.x - x).max() < 1e-3 * 2 * r
     pairs = np.linalg.norm(state.x[:, None] - state.x[None], axis=2) + np.eye(len(x))

@@ -6,7 +6,7 @@ import pytest
 from mpi4py import MPI
 
 from pmpm.errors import CaseError
-from pmpm.mesh import FROM_VTK, Mesh, box_tetrahedra
+from pmpm.mesh import VTK_ORDER, Mesh, box_tetrahedra
 
 LOWER, UPPER, CELLS = np.array([0.0, 0.0, 0.0]), np.array([1.0, 2.0, 3.0]), (4, 3, 5)
 SHEAR = 0.3  # the gmsh test mesh is the box sheared by x += SHEAR z: same volume, planar faces
@@ -42,7 +42,7 @@ def write_gmsh(path, cell_type):
         surface_type = "quad"
     else:
         xyz, petsc = box_tetrahedra(LOWER, UPPER, CELLS)
-        volume = petsc[:, np.argsort(FROM_VTK["tet"])]
+        volume = petsc[:, np.argsort(VTK_ORDER["tet"])]
         block = "tetra"
         faces = volume[:, [[0, 1, 2], [0, 1, 3], [0, 2, 3], [1, 2, 3]]]
         surface_type = "triangle"
