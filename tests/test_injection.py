@@ -1,0 +1,110 @@
+"""Injections (the paper's Table 1): release times, positions, reproducibility from the seed, and
+ids that are never reused in a run."""
+import numpy as np
+import pytest
+from mpi4py import MPI
+
+from pmpm.case import SCHEMA, Section, check_table, load_case
+from pmpm.injection import Injector, read_particle_file
+from pmpm.simulation import Simulation, build_mesh
+
+
+def injection(**values) -> Section:
+    return Section(check_table({"interval": 0.05, "radius": 0.002, "density": 1000.0, **values},
+                               SCHEMA["injection"], "injection", "test"))
+
+
+def test_releases_are_due_at_start_plus_multiples_of_the_interval():
+    """start 0.1, interval 0.05, stop 0.3, 2 per release: by t = 0.2 the releases at 0.1, 0.15 and
+    0.2 (6 particles), then those at 0.25 and 0.3, then none; asking twice gives the same answer."""
+    injector = Injector(injection(start=0.1, stop=0.3, count=2, position=[0.01, 0.02, 0.03]), 0, seed=1)
+    new, next_release = injector.due(0, 0.2)
+    assert len(new) == 6 and next_release == 3
+    again, _ = injector.due(0, 0.2)
+    np.testing.assert_array_equal(again.x, new.x)
+    rest, last = injector.due(next_release, 10.0)
+    assert len(rest) == 4 and last == 5
+    assert len(injector.due(last, 20.0)[0]) == 0
+    np.testing.assert_array_equal(new.x, np.tile([0.01, 0.02, 0.03], (6, 1)))
+
+
+def test_random_injection_is_reproducible_from_the_seed_and_stays_in_its_box():
+    """The same seed gives the same positions on any rank and in any run; another seed, or another
+    release, other positions; all within [lower, upper]."""
+    section = injection(kind="random", count=50, lower=[0.0, 0.1, 0.2], upper=[0.05, 0.2, 0.4])
+    first, _ = Injector(section, 0, seed=7).due(0, 0.0)
+    same, _ = Injector(section, 0, seed=7).due(0, 0.0)
+    other_seed, _ = Injector(section, 0, seed=8).due(0, 0.0)
+    second_release = Injector(section, 0, seed=7).release(1)
+    np.testing.assert_array_equal(first.x, same.x)
+    assert not np.allclose(first.x, other_seed.x) and not np.allclose(first.x, second_release.x)
+    assert (first.x >= [0.0, 0.1, 0.2]).all() and (first.x <= [0.05, 0.2, 0.4]).all()
+    assert first.x.std(axis=0).min() > 0.01     # spread over the box, not one point
+
+
+def test_cylindrical_and_rotating_injection_positions():
+    """A cylindrical release lies at distance r from its axis and height z along it; a location
+    rotating at Ω about a centre has turned by Ω t at the release time t."""
+    cylinder = injection(kind="cylindrical", origin=[1.0, 2.0, 3.0], axis=[0.0, 0.0, 2.0], r=0.3, theta=0.7, z=0.4)
+    x = Injector(cylinder, 0, seed=1).release(0).x[0]
+    assert np.hypot(x[0] - 1.0, x[1] - 2.0) == pytest.approx(0.3, rel=1e-14)
+    assert x[2] - 3.0 == pytest.approx(0.4, rel=1e-14)
+    turning = injection(start=0.5, position=[0.2, 0.0, 0.0], location_angular_velocity=[0.0, 0.0, np.pi],
+                        rotation_center=[0.0, 0.0, 0.0])
+    x = Injector(turning, 0, seed=1).release(0).x[0]     # t = 0.5: turned by π/2
+    np.testing.assert_allclose(x, [0.0, 0.2, 0.0], atol=1e-15)
+
+
+def test_particle_file_columns(tmp_path):
+    """Columns by name in any order, commas or blanks, velocities left out are zero."""
+    path = tmp_path / "p.txt"
+    path.write_text("radius, density, z, y, x, vz\n0.01, 1000, 0.3, 0.2, 0.1, -1.0\n0.02 2000 0.6 0.5 0.4 0\n")
+    new = read_particle_file(path)
+    np.testing.assert_array_equal(new.x, [[0.1, 0.2, 0.3], [0.4, 0.5, 0.6]])
+    np.testing.assert_array_equal(new.v, [[0.0, 0.0, -1.0], [0.0, 0.0, 0.0]])
+    np.testing.assert_array_equal(new.radius, [0.01, 0.02])
+    assert not new.omega.any()
+
+
+FALLING_THROUGH = """
+[run]
+end_time = 0.2
+dt = 0.01
+gravity = [0.0, 0.0, 0.0]
+[mesh]
+box = { lower = [0, 0, 0], upper = [0.1, 0.1, 0.1], cells = [4, 4, 4] }
+[boundary.zmin]
+type = "outlet"
+[[injection]]
+position = [0.05, 0.05, 0.09]
+velocity = [0.0, 0.0, -0.5]
+interval = 0.01
+radius = 0.002
+density = 1000.0
+[[injection]]
+position = [0.02, 0.02, 0.015]
+velocity = [0.0, 0.0, -2.0]
+start = 0.03
+interval = 0.04
+radius = 0.002
+density = 1000.0
+"""
+
+
+def test_ids_are_never_reused(tmp_path):
+    """Particles leave through an outlet while others are injected: an id that has left never
+    comes back on a new particle (the fast, later-injected ones leave first, holding the largest
+    ids), and every particle ever injected is counted once: held + removed = ids given."""
+    path = tmp_path / "case.toml"
+    path.write_text(FALLING_THROUGH)
+    case = load_case(path, [])
+    sim = Simulation(MPI.COMM_SELF, case, build_mesh(MPI.COMM_SELF, case), quiet=True)
+    gone, held = set(), set()
+    for _ in range(20):
+        sim.advance(0.01)
+        now = set(sim.particles.id.tolist())
+        assert not (now & gone), "an id that left came back"
+        gone |= held - now
+        held = now
+    assert sim.state.removed > 3 and gone
+    assert len(sim.particles) + sim.state.removed == sim.state.next_id
