@@ -66,8 +66,7 @@ class PatchForcing:
         """Collective. The step's pairs; particles new to the flow (present at the start, or just
         injected; ids above ``memory.known_id``) first bring the fluid they cover up to their motion:
         it is the solver's fluid, not the user's, and a particle released at speed into still fluid
-        would otherwise spend its first step accelerating it (a ρp/ρf = 2 sphere lost half its
-        momentum so)."""
+        would otherwise spend its first step accelerating it."""
         n_owned = self.mesh.n_owned_cells
         p, c = touched.particle, touched.cell
         alpha = shared_alpha(touched, n_owned)

@@ -169,9 +169,9 @@ class PenaltyForcing:
     def after_projection(self, state: ParticleState, passes: PenaltyPasses, fluid: FluidState, external: External,
                          dt: float, memory: CouplingMemory, step: int, time: float) -> Exchange:
         """Collective. The step's impulse J + ΔP, ΔP now with the projected velocities. Particles with
-        m ≥ M_c take it exactly (momentum conserved; on coarse meshes M_c is several times ρf V, and a
-        ρp/ρf = 1.2 sphere at 2 cells per diameter blew up when ρf V decided), lighter ones keep the
-        damped update of the last pass (``update = "explicit"``: always exactly)."""
+        m ≥ M_c take it exactly (momentum conserved; M_c, not ρf V, decides: on coarse meshes it is
+        several times ρf V), lighter ones keep the damped update of the last pass (``update =
+        "explicit"``: always exactly)."""
         n = len(state)
         internal_end, _ = self.fluid_under(state, passes.touched, fluid.u, passes.under_mass)
         order = np.argsort(state.id)
