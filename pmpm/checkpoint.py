@@ -12,7 +12,8 @@ independent of the rank count, so a run may restart on another number of ranks:
 - ``fluid/velocity``, ``fluid/pressure``, ``fluid/volume_fraction``: cells in the serial order of
   the undistributed mesh;
 - ``fluid/face_key`` (the 3 smallest serial vertex numbers of a face), ``fluid/face_from`` (the
-  serial cell the flux leaves) and ``fluid/face_flux``: each face once, in any order.
+  serial cell the flux leaves), ``fluid/face_flux``: every rank's faces, in any order, a face
+  between two ranks once from each side; ``fluid/face_canonical`` marks one copy of each face.
 """
 from __future__ import annotations
 
@@ -37,12 +38,14 @@ WALL_FIELDS = ("a", "b", "c", "normal", "center")   # what moves of a wall trian
 
 
 def face_identity(mesh):
-    """The faces this rank writes (each face once over all ranks), their keys and 'from' cells."""
+    """Each local face's key (its 3 smallest serial vertex numbers, (n_faces, 3)) and the serial
+    number of the cell its flux leaves (n_faces,); and which faces this rank writes as the one
+    copy of a face that two ranks hold (the copy of the rank with the lower global cell number)."""
     owner, neighbour = mesh.face_cells[:, 0], mesh.face_cells[:, 1]
     gid = mesh.cell_gid
-    mine = (neighbour < 0) | (gid[owner] < np.where(neighbour >= 0, gid[np.maximum(neighbour, 0)], -1))
+    canonical = (neighbour < 0) | (gid[owner] < np.where(neighbour >= 0, gid[np.maximum(neighbour, 0)], -1))
     keys = np.sort(mesh.vertex_serial[mesh.face_vertices], axis=1)[:, :3]
-    return mine, keys, mesh.cell_serial[owner]
+    return keys, mesh.cell_serial[owner], canonical
 
 
 def write(comm, folder: Path, mesh, state) -> None:
@@ -85,12 +88,14 @@ def write_fluid(comm, f, mesh, state) -> None:
         dset = f.create_dataset(f"fluid/{name}", (mesh.n_global_cells,) + values.shape[1:], dtype=float)
         with dset.collective:
             dset[cells.start:cells.stop] = slab
-    mine, keys, from_cell = face_identity(mesh)
-    count = int(mine.sum())
+    # every rank's faces, a face between two ranks once from each: the fluxes the two ranks hold
+    # differ by round-off, and a restart on the same ranks continues bit for bit with each its own
+    keys, from_cell, canonical = face_identity(mesh)
+    count = len(keys)
     start = exscan_offset(comm, count)
     total = comm.allreduce(count)
-    for name, values in (("face_key", keys[mine]), ("face_from", from_cell[mine]),
-                         ("face_flux", state.fluid.flux[mine])):
+    for name, values in (("face_key", keys), ("face_from", from_cell), ("face_canonical", canonical),
+                         ("face_flux", state.fluid.flux)):
         dset = f.create_dataset(f"fluid/{name}", (total,) + values.shape[1:], dtype=values.dtype)
         with dset.collective:
             dset[start:start + count] = values
@@ -150,12 +155,19 @@ def restore(comm, data: dict, model, initial, path: Path):
 
 
 def restored_fluid(comm, stored: dict, mesh, path: Path) -> dict:
-    """Collective. The flow and the volume fraction of a checkpoint on this rank's cells."""
-    _, keys, from_cell = face_identity(mesh)
-    where = match_rows(keys, stored["face_key"])
+    """Collective. The flow and the volume fraction of a checkpoint on this rank's cells. A face
+    takes the flux stored with its own orientation (this rank's copy, on the same ranks), else the
+    one copy of it, turned where it was stored from the other side."""
+    keys, from_cell, _ = face_identity(mesh)
+    flux = np.zeros(len(keys))
+    same = match_rows(np.column_stack([keys, from_cell]), np.column_stack([stored["face_key"], stored["face_from"]]))
+    flux[same >= 0] = stored["face_flux"][same[same >= 0]]
+    rest = np.flatnonzero(same < 0)
+    canonical = np.flatnonzero(stored["face_canonical"])
+    where = match_rows(keys[rest], stored["face_key"][canonical])
     agree(comm, CaseError(f"--restart {path}: the checkpoint's faces do not match this case's mesh")
           if (where < 0).any() else None)
-    sign = np.where(stored["face_from"][where] == from_cell, 1.0, -1.0)
-    fluid = FluidState(stored["velocity"][mesh.cell_serial].reshape(-1, 3), stored["pressure"][mesh.cell_serial],
-                       sign * stored["face_flux"][where])
+    where = canonical[where]
+    flux[rest] = np.where(stored["face_from"][where] == from_cell[rest], 1.0, -1.0) * stored["face_flux"][where]
+    fluid = FluidState(stored["velocity"][mesh.cell_serial].reshape(-1, 3), stored["pressure"][mesh.cell_serial], flux)
     return {"fluid": fluid, "volume_fraction": stored["volume_fraction"][mesh.cell_serial]}

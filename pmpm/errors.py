@@ -18,3 +18,14 @@ class NumericalError(Exception):
     """
 
     exit_status = 3
+
+
+class Stopped(Exception):
+    """The run was asked to stop by a signal (SIGTERM from a batch scheduler, SIGINT from Ctrl-C)
+    and stopped cleanly after a whole step, its state written (exit status 128 + the signal's
+    number, as a shell reports a process ended by that signal: 143 for SIGTERM, 130 for SIGINT).
+    """
+
+    def __init__(self, message: str, signal_number: int):
+        super().__init__(message)
+        self.exit_status = 128 + signal_number

@@ -121,6 +121,7 @@ class FlowSolver:
         cols = np.concatenate([np.arange(n_int), np.arange(n_int), np.arange(n_int, n_faces)])
         vals = np.concatenate([np.ones(n_int), -np.ones(n_int), np.ones(n_faces - n_int)])
         self.D = scipy.sparse.csr_matrix((vals, (rows, cols)), shape=(self.n_local, n_faces))
+        self.D_abs = abs(self.D)[:self.n_owned]                   # Σ over an owned cell's faces of |·|
         # interior face interpolation as a matrix: one sparse product is 3× faster than two gathers
         faces = np.arange(n_int)
         self.I = scipy.sparse.csr_matrix((np.concatenate([self.w, 1 - self.w]),
@@ -355,10 +356,25 @@ class FlowSolver:
 
     # -- diagnostics ------------------------------------------------------------------------------
     def cfl(self, state: FluidState, dt: float) -> float:
-        """Collective. max over owned cells of dt Σ_f |F_f| / (2 V)."""
-        outflow = abs(self.D) @ np.abs(state.flux)
-        local = float((dt * outflow[:self.n_owned] / (2 * self.volume[:self.n_owned])).max(initial=0.0))
-        return self.comm.allreduce(local, op=MPI.MAX)
+        """Collective. The CFL number: max over owned cells of dt Σ_f |F_f| / (2 V)."""
+        return self.largest_cfl(state, dt)[0]
+
+    def boundary_cfl(self, dt: float) -> float:
+        """Collective. The CFL number the boundary velocities give: their largest speed × dt over the
+        smallest cell size."""
+        speed = float(np.linalg.norm(self.u_fixed, axis=1).max(initial=0.0))
+        return self.comm.allreduce(speed * dt / float(self.h.min(initial=np.inf)), op=MPI.MAX)
+
+    def largest_cfl(self, state: FluidState, dt: float) -> tuple[float, np.ndarray | None]:
+        """Collective. The CFL number and the centre (3,) of the cell where it is reached (None
+        without cells), the same on every rank."""
+        per_cell = dt * (self.D_abs @ np.abs(state.flux)) / (2 * self.volume[:self.n_owned])
+        per_cell = np.where(np.isnan(per_cell), np.inf, per_cell)
+        worst = int(np.argmax(per_cell)) if len(per_cell) else -1
+        mine = (float(per_cell[worst]), self.mesh.cell_center[worst]) if worst >= 0 else (-1.0, None)
+        if self.comm.size == 1:
+            return mine
+        return max(self.comm.allgather(mine), key=lambda pair: pair[0])
 
     def divergence_norm(self, state: FluidState) -> float:
         """Collective. max over owned cells of |Σ_f F_f| / V (1/s)."""

@@ -25,6 +25,7 @@ from scipy.spatial import cKDTree
 
 from .errors import CaseError
 from .parallel import agree, allreduce_sum
+from .partition import set_coordinate_partition
 
 BOX_BOUNDARIES = ("xmin", "xmax", "ymin", "ymax", "zmin", "zmax")
 UNNAMED_BOUNDARY = "boundary"
@@ -138,6 +139,12 @@ class Mesh:
         dm.setBasicAdjacency(True, False)  # finite-volume adjacency: the overlap is the face neighbours
         self.build_stages = {"create": wallclock.perf_counter() - start_time}
         mark = wallclock.perf_counter()
+        if comm.size > 1:   # partitioned by coordinates, on rank 0: the same partition in every run
+            centres = None
+            if comm.rank == 0:
+                xyz = dm.getCoordinatesLocal().getArray().reshape(-1, 3)
+                centres = xyz[serial_vertices(np.arange(n_global_cells))].mean(axis=1)
+            set_coordinate_partition(dm, comm, centres)
         migration = dm.distribute(overlap=1) if comm.size > 1 else None
         self.build_stages["distribute"] = wallclock.perf_counter() - mark
         mark = wallclock.perf_counter()

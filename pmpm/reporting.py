@@ -72,9 +72,8 @@ def describe_flow(model, state) -> str:
     when it exceeds [run] max_cfl, and when ν dt/h² is large enough to move a particle's drag."""
     case, flow, comm = model.case, model.flow, model.comm
     fluid, run = case.fluid, case.run
-    speed = float(np.linalg.norm(flow.u_fixed, axis=1).max(initial=0.0))
+    cfl = flow.boundary_cfl(run.dt)
     h = float(flow.h.min(initial=np.inf))
-    cfl = comm.allreduce(speed * run.dt / h, op=MPI.MAX)
     if cfl > run.max_cfl and comm.rank == 0:
         warn(comm, f"[run] dt = {run.dt:g} s gives a CFL number of {cfl:.2f} at the boundary velocities "
                    f"(above max_cfl = {run.max_cfl:g}); the explicit convection may go unstable")
@@ -89,19 +88,10 @@ def describe_flow(model, state) -> str:
             f"{coupling.update} update, {coupling.forcing_passes} forcing passes")
 
 
-def warn_on_cfl(model, state, warned: bool) -> bool:
-    """Collective (with a flow). Warn once when the flow's CFL number exceeds [run] max_cfl;
-    returns whether it has warned."""
-    if warned or model.flow is None:
-        return warned
-    run = model.case.run
-    cfl = model.flow.cfl(state.fluid, run.dt)
-    if cfl <= run.max_cfl:
-        return False
-    if model.comm.rank == 0:
-        warn(model.comm, f"step {state.step}: CFL number {cfl:.2f} exceeds [run] max_cfl = {run.max_cfl:g}; "
-                         "the explicit convection may go unstable: reduce [run] dt")
-    return True
+def warn_once(comm, message: str) -> None:
+    """A warning from rank 0 of something every rank knows (not collective)."""
+    if comm.rank == 0:
+        warn(comm, message)
 
 
 def summary(model, state, status: str, seconds: dict) -> dict:

@@ -7,6 +7,7 @@ top to bottom, and ``run`` repeats it, writing outputs and checkpoints on the wa
 from __future__ import annotations
 
 import math
+import signal
 import time as wallclock
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -18,7 +19,7 @@ from .case import Case, case_path, load_case, suggest
 from .collisions import (CollisionSettings, advance_with_collisions, build_walls, check_initial_particles,
                          collision_settings, overlaps_existing)
 from .coupling import CouplingMemory, External, PatchForcing, PenaltyForcing, build_forcing, volume_fraction
-from .errors import CaseError, NumericalError
+from .errors import CaseError, NumericalError, Stopped
 from .fluid import FlowSolver
 from .forces import field_forces_of_case, gravity_buoyancy
 from .injection import Injector, NewParticles, build_injectors, initial_particles
@@ -26,6 +27,7 @@ from .mesh import Mesh
 from .parallel import print0
 from .particles import FIXED, ParticleState, accelerate
 from .reporting import StageTimes
+from .signals import StopRequests
 from .state import RunState
 
 
@@ -279,8 +281,10 @@ class Simulation:
         return reporting.describe_flow(self.model, self.state)
 
     def run(self, output: Path, setup_seconds: float) -> None:
-        """Collective. Run to end_time (or the wall-time limit), writing outputs on the way; on a
-        numerical failure the state the failed step started from is written first (exit 3)."""
+        """Collective. Run to end_time, writing outputs and checkpoints on the way. Stops early, its
+        state written, at the wall-time limit or on SIGTERM/SIGINT (``Stopped``, after a checkpoint);
+        on a numerical failure or a diverging flow (``NumericalError``) the last good state is
+        written first."""
         model, run = self.model, self.model.case.run
         writers = io.Writers.open(self.comm, output, model.mesh, model.flow is not None)
         progress = reporting.Progress(self.comm, run.end_time, self.quiet, start_time=self.state.time)
@@ -289,37 +293,43 @@ class Simulation:
         next_output = (math.floor(self.state.time / run.output_every + 1e-9) + 1) * run.output_every
         every = run.checkpoint_every
         next_checkpoint = (math.floor(self.state.time / every + 1e-9) + 1) * every if every else math.inf
-        status = "completed"
+        status, stop = "completed", None
         checkpoint_time = self.state.time
-        cfl_warned = False
+        watch = FlowWatch(self.state, model.flow.boundary_cfl(run.dt) if model.flow is not None else 0.0)
         try:
-            while self.state.time < run.end_time * (1 - 1e-12):
-                dt = min(run.dt, run.end_time - self.state.time)
-                self.advance(dt)   # on a NumericalError self.state stays the state the step started from
-                time = self.state.time
-                if self.state.step % 10 == 1:
-                    cfl_warned = reporting.warn_on_cfl(model, self.state, cfl_warned)
-                if time >= next_output * (1 - 1e-9) or time >= run.end_time * (1 - 1e-12):
-                    with self.times.stage("output"):
+            with StopRequests() as stops:
+                while self.state.time < run.end_time * (1 - 1e-12):
+                    dt = min(run.dt, run.end_time - self.state.time)
+                    self.advance(dt)   # on a NumericalError self.state stays the state the step started from
+                    watch = watch_flow(model, self.state, dt, watch)
+                    time = self.state.time
+                    if time >= next_output * (1 - 1e-9) or time >= run.end_time * (1 - 1e-12):
+                        with self.times.stage("output"):
+                            writers.write(self.state)
+                        while next_output <= time * (1 + 1e-9):
+                            next_output += run.output_every
+                    if time >= next_checkpoint * (1 - 1e-9):
+                        with self.times.stage("checkpoint"):
+                            checkpoint.write(self.comm, output, model.mesh, self.state)
+                        checkpoint_time = time
+                        while next_checkpoint <= time * (1 + 1e-9):
+                            next_checkpoint += every
+                    progress.update(self.state.step, time, f"  particles {len(self.state.particles)}")
+                    signal_number = stops.agreed(self.comm)
+                    if signal_number:
+                        stop = Stopped(stop_message(self.state, signal_number, output), signal_number)
+                        status = f"stopped by {signal.Signals(signal_number).name}"
+                    elif run.wall_time_limit and wallclock.perf_counter() - started > run.wall_time_limit:
+                        status = "stopped at the wall-time limit"
+                    if status != "completed":
                         writers.write(self.state)
-                    while next_output <= time * (1 + 1e-9):
-                        next_output += run.output_every
-                if time >= next_checkpoint * (1 - 1e-9):
-                    with self.times.stage("checkpoint"):
-                        checkpoint.write(self.comm, output, model.mesh, self.state)
-                    checkpoint_time = time
-                    while next_checkpoint <= time * (1 + 1e-9):
-                        next_checkpoint += every
-                progress.update(self.state.step, time, f"  particles {len(self.state.particles)}")
-                if run.wall_time_limit and wallclock.perf_counter() - started > run.wall_time_limit:
-                    status = "stopped at the wall-time limit"
-                    writers.write(self.state)
-                    break
-            if every and checkpoint_time != self.state.time:  # the final state, for a later continuation
+                        break
+            if (every or stop) and checkpoint_time != self.state.time:   # for a later continuation
                 with self.times.stage("checkpoint"):
                     checkpoint.write(self.comm, output, model.mesh, self.state)
         except NumericalError:
             status = "numerical failure"
+            self.state = watch.good if model.flow is not None else self.state
             with self.times.stage("output"):   # the last good state is written first
                 writers.write(self.state)
             raise
@@ -328,6 +338,54 @@ class Simulation:
             progress.update(self.state.step, self.state.time, force=True)
             seconds = {"total": total, "setup": setup_seconds, **self.times.seconds}
             io.write_summary(self.comm, output, reporting.summary(model, self.state, status, seconds))
+        if stop is not None:
+            raise stop
+
+
+def stop_message(state: RunState, signal_number: int, output: Path) -> str:
+    return (f"stopped by {signal.Signals(signal_number).name} after step {state.step}, t = {state.time:.6g} s; "
+            f"the state is in {output / 'checkpoint.h5'} (continue with --restart)")
+
+
+@dataclass(frozen=True)
+class FlowWatch:
+    """What the run keeps to judge the flow: the latest state whose CFL number was within the
+    stable range (written if the flow diverges later), the largest CFL number of such states and
+    the boundary velocities', and whether the run has warned of a large one."""
+
+    good: RunState
+    stable_cfl: float = 0.0
+    warned: bool = False
+
+
+STABLE_CFL = 2.0      # × [run] max_cfl: a state below it is kept as the last good one
+DIVERGED_CFL = 10.0   # × [run] max_cfl: above it the explicit convection is blowing up: stop
+
+
+def watch_flow(model: Model, state: RunState, dt: float, watch: FlowWatch) -> FlowWatch:
+    """Collective (with a flow). The CFL number after a step: warned of above [run] max_cfl, kept
+    as the last good state below STABLE_CFL × max_cfl, and above DIVERGED_CFL × max_cfl (or not
+    finite) the run stops: NumericalError naming the step, time, cell and remedy."""
+    if model.flow is None:
+        return replace(watch, good=state)
+    limit = model.case.run.max_cfl
+    cfl, where = model.flow.largest_cfl(state.fluid, dt)
+    if cfl > DIVERGED_CFL * limit:
+        good = watch.good
+        suggestion = dt * limit / max(watch.stable_cfl, limit)
+        raise NumericalError(
+            f"step {state.step}, t = {state.time:.6g} s: the flow is diverging: CFL number {cfl:.3g} in the cell "
+            f"at ({where[0]:.4g}, {where[1]:.4g}, {where[2]:.4g}) (stopped above {DIVERGED_CFL * limit:g}); "
+            f"reduce [run] dt (to {suggestion:.3g} s or less) or use convection = \"upwind\"; written: the last "
+            f"state with CFL ≤ {STABLE_CFL * limit:g}, step {good.step}, t = {good.time:.6g} s")
+    if cfl > limit and not watch.warned:
+        reporting.warn_once(model.comm, f"step {state.step}: CFL number {cfl:.2f} in the cell at ({where[0]:.4g}, "
+                                        f"{where[1]:.4g}, {where[2]:.4g}) exceeds [run] max_cfl = {limit:g}; the "
+                                        "explicit convection may go unstable: reduce [run] dt")
+        watch = replace(watch, warned=True)
+    if cfl <= STABLE_CFL * limit:
+        watch = replace(watch, good=state, stable_cfl=max(watch.stable_cfl, cfl))
+    return watch
 
 
 def run_from_arguments(comm, arguments) -> None:

@@ -1,6 +1,6 @@
-"""checkpoint.h5 holds the whole run state: a run restored from it continues exactly as the
-uninterrupted run, flow, coupling memory, contact memory and moving walls included (bit for bit
-on 1 rank; to round-off on 2, whose reductions are not ordered)."""
+"""checkpoint.h5 holds the whole run state: a run restored from it on the same ranks continues
+bit for bit as the uninterrupted run, flow, coupling memory, contact memory and moving walls
+included."""
 from dataclasses import fields
 
 import numpy as np
@@ -99,8 +99,7 @@ def continue_from_checkpoint(comm, case, mesh, folder, steps, dt):
     rest = Simulation(comm, case, mesh, quiet=True)
     rest.state = checkpoint.restore(comm, checkpoint.read(comm, folder / "checkpoint.h5"), rest.model, rest.state,
                                     folder / "checkpoint.h5")
-    # a face between ranks holds the flux each side computed; the file keeps one side's: round-off
-    assert_same_state(half.state, rest.state, exact=comm.size == 1 or half.state.fluid is None)
+    assert_same_state(half.state, rest.state, exact=True)
     for _ in range(steps):
         rest.advance(dt)
     return whole.state, rest.state
@@ -120,11 +119,11 @@ def reproducible_pressure_pc():
 @pytest.mark.mpi
 def test_restart_continues_a_coupled_run(comm, shared_tmp, reproducible_pressure_pc):
     """A heavy sphere settling across the rank boundary, 2 × 6 steps against 6, checkpoint, 6: the
-    same particle, flow and coupling memory (bit for bit on 1 rank)."""
+    same particle, flow and coupling memory, bit for bit."""
     case, mesh, folder = build(comm, shared_tmp, SETTLING, "settling")
     whole, rest = continue_from_checkpoint(comm, case, mesh, folder, 6, case.run.dt)
     assert whole.particles.v[0, 2] < -0.005, "the sphere moves"
-    assert_same_state(whole, rest, exact=comm.size == 1)
+    assert_same_state(whole, rest, exact=True)
 
 
 def bed_file() -> str:
