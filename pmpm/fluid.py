@@ -298,10 +298,11 @@ class FlowSolver:
         return u_star
 
     def project(self, state: FluidState, u_star: np.ndarray, predicted: Predictor, dt: float, step: int = 0,
-                time: float = 0.0) -> Projection:
+                time: float = 0.0, volume_source: np.ndarray | None = None) -> Projection:
         """Collective. Face fluxes with the Rhie–Chow pressure term, then the pressure correction p'
-        that makes them divergence-free (stage 3; non-orthogonal correctors on skewed meshes).
-        Refreshes ``u_star``'s ghost rows first (in place)."""
+        that makes them divergence-free (stage 3; non-orthogonal correctors on skewed meshes), or,
+        with ``volume_source`` (n_local,) q in m³/s, makes each cell's net outflow q (the fluid that
+        new particles displace). Refreshes ``u_star``'s ghost rows first (in place)."""
         rho, n_int = self.rho, self.n_interior
         self.mesh.update_ghosts(u_star)
         p, grad_p = state.p, predicted.grad_p
@@ -319,6 +320,8 @@ class FlowSolver:
                                                 + self.nonorthogonal(grad_p[B], outlet)))
         correction = np.zeros(self.n_local)
         divergence = self.D @ flux_star
+        if volume_source is not None:
+            divergence -= volume_source
         extra = np.zeros_like(flux_star)
         iterations = 0
         for corrector in range(1 + (0 if self.orthogonal else self.correctors)):

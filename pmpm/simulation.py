@@ -24,7 +24,7 @@ from .fluid import FlowSolver
 from .forces import field_forces_of_case, gravity_buoyancy
 from .injection import Injector, NewParticles, build_injectors, initial_particles
 from .mesh import Mesh
-from .parallel import print0
+from .parallel import allreduce_sum, print0
 from .particles import FIXED, ParticleState, accelerate
 from .reporting import StageTimes
 from .signals import StopRequests
@@ -117,6 +117,7 @@ def add_particles(model: Model, state: RunState, new: NewParticles, validate: bo
 def advance(model: Model, state: RunState, dt: float, times: StageTimes) -> RunState:
     """Collective. One time step, stage by stage (ARCHITECTURE.md)."""
     # 1. inject new particles
+    first_new_id = state.next_id
     if model.injectors:
         with times.stage("injection"):
             state = inject(model, state, state.time + dt)
@@ -126,7 +127,7 @@ def advance(model: Model, state: RunState, dt: float, times: StageTimes) -> RunS
     # 2–5. locate the particles' cells, advance the flow with their forcing, drag and torque
     force, torque = external.force, external.torque
     if model.flow is not None:
-        state = flow_stage(model, state, external, dt, times)
+        state = flow_stage(model, state, external, dt, times, injected=state.particles.id >= first_new_id)
         force, torque = force + state.hydro_force, torque + state.hydro_torque
     # 7. update V and ω, then move, with collisions resolved in time order
     with times.stage("collisions" if model.contact_settings is not None else "motion"):
@@ -158,10 +159,13 @@ def external_forces(model: Model, state: RunState) -> External:
     return External(force, np.zeros_like(force))
 
 
-def flow_stage(model: Model, state: RunState, external: External, dt: float, times: StageTimes) -> RunState:
+def flow_stage(model: Model, state: RunState, external: External, dt: float, times: StageTimes,
+               injected: np.ndarray | None = None) -> RunState:
     """Collective. Steps 2–5: the particles' touched cells, the flow advanced with their forcing
     (``forcing_passes`` momentum solves, the forcing updating its guess of the particles' motion
-    after each), the projection, and the fluid's force and torque on each particle."""
+    after each), the projection, and the fluid's force and torque on each particle. Particles
+    ``injected`` this step (bool mask) displace their volume of fluid, which the projection
+    makes leave through the outlets."""
     flow, forcing, particles = model.flow, model.forcing, state.particles
     n_owned = model.mesh.n_owned_cells
     step, time = state.step, state.time
@@ -170,6 +174,7 @@ def flow_stage(model: Model, state: RunState, external: External, dt: float, tim
     fluid = state.fluid
     with times.stage("coupling"):
         touched = forcing.locate(particles)
+        displaced = displaced_volume(model, particles, touched, injected, dt)
         if coupled:
             forcing_state, fluid = forcing.begin(particles, touched, fluid, state.coupling, dt)
     with times.stage("flow"):
@@ -189,7 +194,7 @@ def flow_stage(model: Model, state: RunState, external: External, dt: float, tim
             if source is not None and forcing_pass < passes - 1:
                 rhs = plus_owned(rhs, source)
     with times.stage("flow"):
-        projection = flow.project(fluid, u_star, predicted, dt, step, time)
+        projection = flow.project(fluid, u_star, predicted, dt, step, time, volume_source=displaced)
         fluid = flow.correct(fluid, u_star, projection, dt)
     with times.stage("coupling"):
         fractions = np.zeros(model.mesh.n_local_cells)
@@ -203,6 +208,24 @@ def flow_stage(model: Model, state: RunState, external: External, dt: float, tim
                             coupling=exchange.memory)
     flow.check(state.fluid, step, time)
     return state
+
+
+def displaced_volume(model: Model, particles: ParticleState, touched, injected: np.ndarray | None,
+                     dt: float) -> np.ndarray | None:
+    """Collective (when particles were injected). The paper's mass source for continuous
+    injection, (n_local,) m³/s: each particle injected this step displaces its volume of fluid
+    within the step, shared among the cells it covers by their α V; None when none was."""
+    if injected is None or not injected.any():
+        return None
+    mesh = model.mesh
+    new = injected[touched.particle]
+    p, c = touched.particle[new], touched.cell[new]
+    covered = touched.alpha[new] * mesh.cell_volume[c]
+    per_particle = allreduce_sum(model.comm, np.bincount(p, covered, minlength=len(particles)))
+    share = covered / np.maximum(per_particle[p], np.finfo(float).tiny)
+    source = np.zeros(mesh.n_local_cells)
+    source[:mesh.n_owned_cells] = np.bincount(c, share * particles.volume[p] / dt, minlength=mesh.n_owned_cells)
+    return source
 
 
 def plus_owned(array: np.ndarray, owned_rows: np.ndarray) -> np.ndarray:
