@@ -52,7 +52,7 @@ def write(comm, folder: Path, mesh, state) -> None:
     """Collective. Write the run state (``pmpm.state.RunState``) to ``folder/checkpoint.h5`` atomically."""
     temporary, final = folder / "checkpoint.h5.tmp", folder / "checkpoint.h5"
     with h5py.File(temporary, "w", driver="mpio", comm=comm) as f:
-        f.attrs.update(time=state.time, step=state.step, next_id=state.next_id, removed=state.removed,
+        f.attrs.update(time=state.time, step=state.step, dt=state.dt, next_id=state.next_id, removed=state.removed,
                        pressure_iterations=state.pressure_iterations, n_global_cells=mesh.n_global_cells,
                        injector_releases=np.array(state.releases, np.int64),
                        collisions=json.dumps(state.collision_totals))
@@ -138,7 +138,8 @@ def restore(comm, data: dict, model, initial, path: Path):
     template = ParticleState.empty()
     particles = ParticleState(**{name: stored[name].astype(getattr(template, name).dtype)
                                  .reshape((-1,) + getattr(template, name).shape[1:]) for name in PARTICLE_FIELDS})
-    state = replace(initial, time=float(attrs["time"]), step=int(attrs["step"]), next_id=int(attrs["next_id"]),
+    state = replace(initial, time=float(attrs["time"]), step=int(attrs["step"]), dt=float(attrs.get("dt", 0.0)),
+                    next_id=int(attrs["next_id"]),
                     removed=int(attrs["removed"]), releases=tuple(int(k) for k in releases),
                     pressure_iterations=int(attrs.get("pressure_iterations", 0)),
                     collision_totals=json.loads(attrs.get("collisions", "{}")), particles=particles,

@@ -91,8 +91,8 @@ class FlowSolver:
         dirichlet = np.zeros(len(coefficient), bool)
         dirichlet[self.n_interior:] = self.kind == OUTLET
         self.pressure = PressureSolver(mesh, coefficient, dirichlet, rtol=fluid.pressure_rtol)
-        self._momentum_dt = None
-        self.momentum = []
+        self._momentum = {}          # dt → its momentum KSPs, the latest used last
+        self._atol_dt = None
 
     # -- set-up -------------------------------------------------------------------------------------
     def _geometry(self):
@@ -164,20 +164,41 @@ class FlowSolver:
         flux[self.n_interior:] = self.flux_fixed
         return FluidState(np.zeros((self.n_local, 3)), np.zeros(self.n_local), flux)
 
-    def _momentum_solvers(self, dt: float):
-        """The implicit-diffusion matrices (V/dt − ν L) of the three components, for this dt."""
-        if self._momentum_dt is not None and abs(self._momentum_dt - dt) <= 1e-12 * dt:
-            return self.momentum
-        for solver in self.momentum:
-            solver.destroy()
+    def _momentum_solvers(self, dt: float) -> list:
+        """The implicit-diffusion KSPs (V/dt − ν L) of the three components for this dt, with the
+        pressure's atol for it. The solvers of the two latest dts are kept: an adaptive step goes to
+        a shorter one to land on an output time and back."""
+        found = [d for d in self._momentum if abs(d - dt) <= 1e-12 * dt]
+        if found:
+            self._momentum[found[0]] = self._momentum.pop(found[0])     # the latest used is last
+        else:
+            if len(self._momentum) == 2:
+                oldest = next(iter(self._momentum))
+                for solver in {id(s): s for s in self._momentum.pop(oldest)}.values():
+                    solver.destroy()
+            self._momentum[float(dt)] = self._assemble_momentum(dt)
+        if self._atol_dt != dt:
+            # a flux imbalance of 1e-15 m/s over each cell's faces: at a steady state the pressure's
+            # right-hand side is round-off, and CG would break down on that noise
+            area = self.volume[:self.n_owned] ** (2 / 3)
+            self.pressure.set_atol(1e-15 * self.rho / dt * float(np.sqrt(self.comm.allreduce(np.sum(area ** 2)))))
+            self._atol_dt = dt
+        return self.momentum
+
+    @property
+    def momentum(self) -> list:
+        """The momentum KSPs of the latest dt (one per velocity component, possibly one shared)."""
+        return list(self._momentum.values())[-1] if self._momentum else []
+
+    def _assemble_momentum(self, dt: float) -> list:
         nu = self.nu
         coefficient = np.concatenate([nu * self.a, np.zeros(len(self.a_b))])
-        self.momentum = []
+        solvers = []
         # the three matrices differ only on symmetry faces: without them, one matrix and KSP serve all
         symmetry = self.comm.allreduce(bool((self.kind == SYMMETRY).any()), op=MPI.LOR)
         for component in range(3):
             if component and not symmetry:
-                self.momentum.append(self.momentum[0])
+                solvers.append(solvers[0])
                 continue
             boundary = nu * self.a_b * np.where(self.dirichlet_u, 1.0, 0.0)
             boundary += nu * self.a_b * np.where(self.kind == SYMMETRY, self.normal_b[:, component] ** 2, 0.0)
@@ -186,14 +207,8 @@ class FlowSolver:
             # Jacobi: the matrix is diagonally dominant, and the result does not depend on the partition
             # atol: a velocity error of 1e-15 m/s per cell, so that fluid at rest converges at once
             atol = 1e-15 * float(np.sqrt(self.comm.allreduce(np.sum((self.volume[:self.n_owned] / dt) ** 2))))
-            self.momentum.append(CellKSP(self.mesh, matrix, "momentum_", "cg", "jacobi", 1e-8, "momentum",
-                                         atol=atol))
-        # the pressure's atol, likewise: a flux imbalance of 1e-15 m/s over each cell's faces. At a
-        # steady state the right-hand side is round-off, and CG would break down on that noise
-        area = self.volume[:self.n_owned] ** (2 / 3)
-        self.pressure.set_atol(1e-15 * self.rho / dt * float(np.sqrt(self.comm.allreduce(np.sum(area ** 2)))))
-        self._momentum_dt = dt
-        return self.momentum
+            solvers.append(CellKSP(self.mesh, matrix, "momentum_", "cg", "jacobi", 1e-8, "momentum", atol=atol))
+        return solvers
 
     # -- discrete operators ------------------------------------------------------------------------
     def interpolate(self, values):
@@ -371,13 +386,18 @@ class FlowSolver:
     def largest_cfl(self, state: FluidState, dt: float) -> tuple[float, np.ndarray | None]:
         """Collective. The CFL number and the centre (3,) of the cell where it is reached (None
         without cells), the same on every rank."""
-        per_cell = dt * (self.D_abs @ np.abs(state.flux)) / (2 * self.volume[:self.n_owned])
-        per_cell = np.where(np.isnan(per_cell), np.inf, per_cell)
+        per_cell = dt * self.convective_rates(state)
         worst = int(np.argmax(per_cell)) if len(per_cell) else -1
         mine = (float(per_cell[worst]), self.mesh.cell_center[worst]) if worst >= 0 else (-1.0, None)
         if self.comm.size == 1:
             return mine
         return max(self.comm.allgather(mine), key=lambda pair: pair[0])
+
+    def convective_rates(self, state: FluidState) -> np.ndarray:
+        """Local. Σ_f |F_f| / (2 V) of each owned cell (1/s): its CFL number per second of dt
+        (not finite values as infinity)."""
+        rates = (self.D_abs @ np.abs(state.flux)) / (2 * self.volume[:self.n_owned])
+        return np.where(np.isnan(rates), np.inf, rates)
 
     def divergence_norm(self, state: FluidState) -> float:
         """Collective. max over owned cells of |Σ_f F_f| / V (1/s)."""
@@ -410,7 +430,8 @@ class FlowSolver:
 
     def destroy(self):
         self.pressure.destroy()
-        for solver in self.momentum:
-            solver.destroy()
+        for solvers in self._momentum.values():
+            for solver in {id(s): s for s in solvers}.values():
+                solver.destroy()
 
 

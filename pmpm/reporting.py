@@ -61,7 +61,9 @@ def describe(model, state, setup_seconds: float) -> str:
         f"  mesh:      {mesh.describe()}",
         f"  particles: {len(state.particles)} at start, {len(model.injectors)} injection(s)",
         f"  ranks:     {comm.size}",
-        f"  time:      0 → {run.end_time:g} s, dt = {run.dt:g} s ({steps} steps), output every {run.output_every:g} s",
+        f"  time:      0 → {run.end_time:g} s, " + (f"dt = {run.dt:g} s ({steps} steps)" if not run.adaptive_cfl else
+                                                   f"dt ≤ {run.dt:g} s adapted to CFL {run.adaptive_cfl:g}")
+        + f", output every {run.output_every:g} s",
         *([describe_flow(model, state)] if model.flow is not None else []),
         f"  setup:     {setup_seconds:.2f} s",
     ])
@@ -74,7 +76,7 @@ def describe_flow(model, state) -> str:
     fluid, run = case.fluid, case.run
     cfl = flow.boundary_cfl(run.dt)
     h = float(flow.h.min(initial=np.inf))
-    if cfl > run.max_cfl and comm.rank == 0:
+    if cfl > run.max_cfl and not run.adaptive_cfl and comm.rank == 0:
         warn(comm, f"[run] dt = {run.dt:g} s gives a CFL number of {cfl:.2f} at the boundary velocities "
                    f"(above max_cfl = {run.max_cfl:g}); the explicit convection may go unstable")
     diffusion = comm.allreduce(fluid.viscosity / fluid.density * run.dt / h ** 2, op=MPI.MAX)
@@ -124,6 +126,6 @@ def diagnostics(model, state) -> dict:
             "boundary_volume_flux": fluxes,
             "net_volume_flux": sum(fluxes.values()),
             "pressure_iterations": state.pressure_iterations,
-            "final_cfl": flow.cfl(fluid, model.case.run.dt),
+            "final_cfl": flow.cfl(fluid, state.dt or model.case.run.dt),
         })
     return result

@@ -13,6 +13,7 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
+from mpi4py import MPI
 
 from . import checkpoint, io, reporting
 from .case import Case, case_path, load_case, suggest
@@ -135,7 +136,7 @@ def advance(model: Model, state: RunState, dt: float, times: StageTimes) -> RunS
     # 8. particles that left the domain are removed
     with times.stage("owners"):
         state = remove_outside(model, state)
-    state = replace(state, time=state.time + dt, step=state.step + 1)
+    state = replace(state, time=state.time + dt, step=state.step + 1, dt=dt)
     check_finite(state.particles, state.step, state.time)
     return state
 
@@ -322,7 +323,7 @@ class Simulation:
         try:
             with StopRequests() as stops:
                 while self.state.time < run.end_time * (1 - 1e-12):
-                    dt = min(run.dt, run.end_time - self.state.time)
+                    dt = next_time_step(model, self.state, min(next_output, next_checkpoint, run.end_time))
                     self.advance(dt)   # on a NumericalError self.state stays the state the step started from
                     watch = watch_flow(model, self.state, dt, watch)
                     time = self.state.time
@@ -363,6 +364,42 @@ class Simulation:
             io.write_summary(self.comm, output, reporting.summary(model, self.state, status, seconds))
         if stop is not None:
             raise stop
+
+
+GROWTH = 1.25   # an adaptive step grows only when it can grow by this factor: each new dt reassembles
+                # the momentum matrices
+
+
+def next_time_step(model: Model, state: RunState, until: float) -> float:
+    """Collective (adaptive). The size of the next step: [run] dt (the last step shorter, to end at
+    end_time); or, with [run] adaptive_cfl c, the largest dt ≤ [run] dt that keeps the flow's CFL
+    number at c and the particles' travel per step at c cells (without a flow: c radii), changed
+    only when it must shrink or can grow by GROWTH (at most doubling), and never past ``until``
+    (the next output, checkpoint or the end), which it reaches in two even steps rather than a
+    long one and a sliver."""
+    run = model.case.run
+    if not run.adaptive_cfl:
+        return min(run.dt, run.end_time - state.time)
+    limit, target = run.dt, run.adaptive_cfl
+    length = float(state.particles.radius.min(initial=np.inf))
+    if model.flow is not None:
+        flow = model.flow
+        h = float(flow.h[:model.mesh.n_owned_cells].min(initial=np.inf))
+        speed = float(np.linalg.norm(flow.u_fixed, axis=1).max(initial=0.0))
+        rate = max(float(flow.convective_rates(state.fluid).max(initial=0.0)), speed / h)
+        rate, length = model.comm.allreduce(rate, op=MPI.MAX), model.comm.allreduce(h, op=MPI.MIN)
+        limit = min(limit, target / rate) if rate > 0 else limit
+    speed = float(np.linalg.norm(state.particles.v, axis=1).max(initial=0.0))
+    if speed > 0:
+        limit = min(limit, target * length / speed)
+    last = state.dt
+    dt = limit
+    if 0 < last <= limit:
+        dt = last if limit < GROWTH * last else min(limit, 2 * last)
+    left = until - state.time
+    if dt >= left * (1 - 1e-9):
+        return left
+    return left / 2 if dt > left / 2 else dt
 
 
 def stop_message(state: RunState, signal_number: int, output: Path) -> str:

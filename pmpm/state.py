@@ -20,7 +20,7 @@ from .particles import ParticleState
 class RunState:
     """One moment of a run (SI).
 
-    time, step : simulated time (s) and steps taken
+    time, step : simulated time (s) and steps taken; dt : the last step's size (s)
     particles : every particle (``pmpm.particles``)
     fluid : the flow, or None without [fluid]
     hydro_force, hydro_torque : (n, 3) the fluid's force (N) and torque (N m) on each particle over the
@@ -46,6 +46,7 @@ class RunState:
     next_id: int
     removed: int
     releases: tuple[int, ...]
+    dt: float = 0.0
     coupling: CouplingMemory | None = None
     contacts: ContactMemory | None = None
     walls: Walls | None = None
