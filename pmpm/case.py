@@ -16,6 +16,9 @@ from typing import Any
 from .errors import CaseError
 
 REQUIRED = object()  # marks a key without a default
+# most intervals of [run] end_time that the time loop may count: a step of dt stays 1000 units
+# in the last place of the time, so time keeps advancing (2^52 / 1000)
+MAX_STEPS = 2.0 ** 52 / 1000
 
 
 @dataclass(frozen=True)
@@ -218,7 +221,8 @@ def case_path(argument: str) -> Path:
 def load_case(path: Path, overrides: list[str] = ()) -> Case:
     """Read, override (``--set KEY=VALUE``) and validate a case file."""
     try:
-        raw = tomllib.loads(path.read_text())
+        # utf-8-sig: a byte-order mark, as some Windows editors write one, is not part of the TOML
+        raw = tomllib.loads(path.read_text(encoding="utf-8-sig"))
     except tomllib.TOMLDecodeError as error:
         raise CaseError(f"{path.name}: not valid TOML: {error}") from None
     except (OSError, UnicodeDecodeError) as error:
@@ -250,6 +254,9 @@ def apply_override(raw: dict, text: str, filename: str) -> None:
     if keys is None or parts[-1] not in {k.name for k in keys}:
         known = [k.name for k in keys] if keys else []
         raise CaseError(f"--set {dotted}: no such key{suggest(parts[-1], known)}")
+    # a bad value is the command line's, not the case file's: say so
+    key = next(k for k in keys if k.name == parts[-1])
+    check_value(value, key, ".".join(parts[:-1]), filename, where=f"--set {dotted}={value_text.strip()}")
     node = raw
     for part in parts[:-1]:
         node = node.setdefault(part, {})
@@ -369,14 +376,16 @@ def describe(key: Key) -> str:
     return f" ({what}{unit})"
 
 
-def check_value(value, key: Key, label: str, filename: str):
-    where = f"{filename}: [{label}] {key.name} = {format_value(value)}"
+def check_value(value, key: Key, label: str, filename: str, where: str = ""):
+    """The typed value of one key, or CaseError naming ``where`` (default: the file, table and key)."""
+    where = where or f"{filename}: [{label}] {key.name} = {format_value(value)}"
     kind = key.kind
     ok = True
     if kind == "float":
         ok = isinstance(value, (int, float)) and not isinstance(value, bool)
         value = float(value) if ok else value
-        ok = ok and math.isfinite(value) or (ok and value == math.inf)
+        # inf only where it is the default, i.e. means "never" ([[injection]] stop)
+        ok = ok and (math.isfinite(value) or (value == math.inf and key.default == math.inf))
     elif kind == "int":
         ok = isinstance(value, int) and not isinstance(value, bool)
     elif kind == "bool":
@@ -394,7 +403,10 @@ def check_value(value, key: Key, label: str, filename: str):
         ok = isinstance(value, list) and all(isinstance(v, str) for v in value)
         value = tuple(value) if ok else value
     if not ok:
-        raise CaseError(f"{where}: must be {describe(key).strip()[1:-1]}")
+        what = describe(key).strip()[1:-1]
+        if isinstance(value, float) and math.isinf(value):
+            what = what.replace("a number", "a finite number")
+        raise CaseError(f"{where}: must be {what}")
     if key.choices and value not in key.choices:
         raise CaseError(f"{where}: must be one of {', '.join(map(repr, key.choices))}"
                         f"{suggest(value, key.choices) if isinstance(value, str) else ''}")
@@ -425,6 +437,13 @@ def check_consistency(case: Case) -> None:
     run = case.run
     if run.output_every is None:
         object.__setattr__(case.run, "values", {**run.values, "output_every": run.end_time / 20})
+    # the loop adds dt to the time: far below the resolution of a double at end_time, time stalls
+    for key in ("dt", "output_every", "checkpoint_every"):
+        every = getattr(run, key)
+        if every is not None and not run.end_time / every <= MAX_STEPS:
+            raise CaseError(f"{name}: [run] {key} = {every:g} s is too small for end_time = {run.end_time:g} s: "
+                            f"{run.end_time / every:.3g} intervals, more than the {MAX_STEPS:.2g} that "
+                            f"double-precision time can count; raise {key} or lower end_time")
     # declared so that the reference lists them, refused until they work (no silent no-ops)
     if run.adaptive_cfl:
         raise CaseError(f"{name}: [run] adaptive_cfl: an adaptive time step is not available yet; set a fixed dt")
@@ -442,6 +461,9 @@ def check_consistency(case: Case) -> None:
             raise CaseError(f"{name}: [[injection]] #{i}: stop = {inj.stop} must be >= start = {inj.start}")
         if inj.kind == "random" and (inj.lower is None or inj.upper is None):
             raise CaseError(f"{name}: [[injection]] #{i}: kind = \"random\" needs lower = [...] and upper = [...]")
+        if inj.kind == "random" and not all(l <= u for l, u in zip(inj.lower, inj.upper)):
+            raise CaseError(f"{name}: [[injection]] #{i}: lower = {format_value(inj.lower)} must not exceed upper = "
+                            f"{format_value(inj.upper)} in any direction (the box of release points)")
         if inj.kind == "cylindrical" and inj.origin is None:
             raise CaseError(f"{name}: [[injection]] #{i}: kind = \"cylindrical\" needs origin = [...]")
     if case.deposition is not None:
