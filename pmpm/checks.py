@@ -33,8 +33,12 @@ BYTES_PER_CELL = {("hex", True): 2300, ("hex", False): 1400, ("tet", True): 1800
 BYTES_PER_RANK = 120 * 2 ** 20
 # DMPlex points (cells, faces, edges, vertices) per cell: PETSc numbers them with its integer type
 POINTS_PER_CELL = {"hex": 8, "tet": 4.5}
-# relative size of the net volume flux through the boundaries that refuses a case, and that warns
+# Volume fluxes through boundaries, relative to speed × area: a net flux that refuses a case (and
+# that warns); the part of a wall's motion through its faces that refuses it (and that warns). The
+# faces of a curved wall are flat: a rotation about the wall's own axis crosses them by ~1/N of its
+# speed with N faces around (a few %), a flapping or misplaced rotation by tens of %.
 FLUX_REFUSED, FLUX_WARNED = 1e-3, 1e-9
+WALL_NORMAL_REFUSED, WALL_NORMAL_WARNED = 0.1, 1e-3
 STEPS_WARNED = 1e9
 
 
@@ -213,9 +217,10 @@ def check_boundary_fluxes(comm, case: Case, mesh) -> None:
     """Collective. The volume fluxes the boundaries impose on an incompressible flow.
 
     A wall's surface can only slide along itself: a wall velocity that carries fluid through the
-    wall is refused. Without an outlet, what the inlets (and walls) bring in must leave through
-    them too: a net flux is refused, naming the boundaries that carry it. Inlets that carry nothing
-    are warned about.
+    wall (net, or in and out over its parts as a flapping plate would) is refused; a small normal
+    part, as the facets of a coarse curved wall give a rotation, is warned about. Without an
+    outlet, what the inlets (and walls) bring in must leave through them too: a net flux is
+    refused, naming the boundaries that carry it. An inlet that carries nothing is warned about.
     """
     name = case.path.name
     names = list(mesh.boundary_names)
@@ -223,7 +228,8 @@ def check_boundary_fluxes(comm, case: Case, mesh) -> None:
     which = mesh.face_boundary[faces]
     area_vec, centre = mesh.face_area_vec[faces], mesh.face_center[faces]
     n = len(names)
-    flux, scale = np.zeros(n), np.zeros(n)
+    # per boundary: net flux Σ u·S, Σ |u·S|, and Σ |u| |S| (what the speed would carry if normal)
+    sums = np.zeros((3, n))
     for index, boundary in enumerate(names):
         section = case.boundaries.get(boundary)
         if section is None or section.type not in ("wall", "inlet") or (section.type == "wall" and section.motion == "rigid"):
@@ -234,47 +240,50 @@ def check_boundary_fluxes(comm, case: Case, mesh) -> None:
             velocity = velocity + np.cross(np.asarray(section.angular_velocity, float),
                                            centre[here] - np.asarray(section.center, float))
         u = np.broadcast_to(velocity, (int(here.sum()), 3))
-        flux[index] = np.einsum("ij,ij->", u, area_vec[here])
-        scale[index] = float(np.sum(np.linalg.norm(u, axis=1) * np.linalg.norm(area_vec[here], axis=1)))
-    totals = np.concatenate([flux, scale])
-    comm.Allreduce(MPI.IN_PLACE, totals, op=MPI.SUM)
-    flux, scale = totals[:n], totals[n:]
+        normal_flux = np.einsum("ij,ij->i", u, area_vec[here])
+        sums[:, index] = (normal_flux.sum(), np.abs(normal_flux).sum(),
+                          np.sum(np.linalg.norm(u, axis=1) * np.linalg.norm(area_vec[here], axis=1)))
+    comm.Allreduce(MPI.IN_PLACE, sums, op=MPI.SUM)
+    flux, through, scale = sums
     kinds = {b: (case.boundaries[b].type if b in case.boundaries else "wall") for b in names}
+    net_part = np.divide(np.abs(flux), scale, out=np.zeros(n), where=scale > 0)
+    normal_part = np.divide(through, scale, out=np.zeros(n), where=scale > 0)
 
-    if case.fluid is None:   # no flow to break; the collisions drop the normal part (pmpm.collisions)
-        for index, boundary in enumerate(names):
-            if kinds[boundary] == "wall" and abs(flux[index]) > FLUX_WARNED * scale[index] and comm.rank == 0:
+    for index, boundary in enumerate(names):
+        section = case.boundaries.get(boundary)
+        if kinds[boundary] == "wall" and case.fluid is None:
+            # no flow to break; the collisions drop the normal part (pmpm.collisions)
+            if normal_part[index] > WALL_NORMAL_WARNED and comm.rank == 0:
                 warn(comm, f"[boundary.{boundary}] the wall's velocity has a part normal to the wall, which the "
                            "collisions ignore: a wall's surface slides along itself")
-        return
-    for index, boundary in enumerate(names):
-        relative = abs(flux[index]) / scale[index] if scale[index] > 0 else 0.0
-        section = case.boundaries.get(boundary)
-        if kinds[boundary] == "wall" and relative > FLUX_REFUSED:
-            raise CaseError(f"{name}: [boundary.{boundary}] velocity = {format_value(section.velocity)}, "
-                            f"angular_velocity = {format_value(section.angular_velocity)}: the wall's surface would carry "
-                            f"{abs(flux[index]):.3g} m³/s of fluid through the wall; a wall's surface can only slide along "
-                            "itself: give a velocity along the wall, or make the boundary an inlet")
-        if kinds[boundary] == "wall" and relative > FLUX_WARNED and comm.rank == 0:
-            warn(comm, f"[boundary.{boundary}] the wall's velocity carries {abs(flux[index]):.3g} m³/s through the wall "
-                       f"({relative:.2g} of its speed × area): a wall's surface slides along itself")
-        if kinds[boundary] == "inlet" and relative <= FLUX_WARNED and comm.rank == 0:
+        elif kinds[boundary] == "wall":
+            if net_part[index] > FLUX_REFUSED or normal_part[index] > WALL_NORMAL_REFUSED:
+                raise CaseError(f"{name}: [boundary.{boundary}] velocity = {format_value(section.velocity)}, "
+                                f"angular_velocity = {format_value(section.angular_velocity)}, center = "
+                                f"{format_value(section.center)}: the wall's surface would carry fluid through the "
+                                f"wall ({through[index]:.3g} m³/s in and out, net {flux[index]:.3g} m³/s); a wall's "
+                                "surface can only slide along itself: give a motion along the wall, or make the "
+                                "boundary an inlet")
+            if normal_part[index] > WALL_NORMAL_WARNED and comm.rank == 0:
+                warn(comm, f"[boundary.{boundary}] the wall's velocity carries {through[index]:.3g} m³/s through its "
+                           f"faces, {100 * normal_part[index]:.2g} % of its speed × area (a coarsely faceted curved "
+                           "wall, or a rotation centre or axis off the wall's own?)")
+        elif kinds[boundary] == "inlet" and net_part[index] <= FLUX_WARNED and comm.rank == 0:
             warn(comm, f"[boundary.{boundary}] inlet velocity = {format_value(section.velocity)} carries no flow through "
                        "the boundary (zero, or along it): a moving surface is a wall with a velocity")
-    if any(kind == "outlet" for kind in kinds.values()):
+    if case.fluid is None or any(kind == "outlet" for kind in kinds.values()):
         return
-    carried = {b: flux[i] for i, b in enumerate(names) if scale[i] > 0}
-    net, gross = float(flux.sum()), float(np.abs(flux).sum())
+    net, gross = float(flux.sum()), float(scale.sum())
     if gross == 0 or abs(net) <= FLUX_WARNED * gross:
         return
-    listed = ", ".join(f"{b} ({kinds[b]}) {-f:+.3g} m³/s" for b, f in carried.items())
+    listed = ", ".join(f"{b} ({kinds[b]}) {-flux[i]:+.3g} m³/s" for i, b in enumerate(names) if scale[i] > 0)
     if abs(net) > FLUX_REFUSED * gross:
         raise CaseError(f"{name}: the boundaries bring a net {-net:+.3g} m³/s into a domain with no outlet ({listed}; "
                         "+ is into the domain): an incompressible flow cannot take it; add an outlet "
                         "([boundary.<name>] type = \"outlet\"), or let as much out as comes in")
     if comm.rank == 0:
-        warn(comm, f"the boundaries bring a net {-net:+.3g} m³/s ({abs(net) / gross:.2g} of what they carry) into a "
-                   f"domain with no outlet ({listed}): the flow cannot be divergence-free to better than that")
+        warn(comm, f"the boundaries bring a net {-net:+.3g} m³/s into a domain with no outlet ({listed}): the flow "
+                   "cannot be divergence-free to better than that")
 
 
 # -- particles and injections -------------------------------------------------------------------
@@ -336,7 +345,9 @@ def check_disk(comm, model, state, folder: Path) -> str:
     case, mesh = model.case, model.mesh
     run = case.run
     start = state.time
-    n_outputs = 1 + max(0, math.ceil((run.end_time - start) / run.output_every - 1e-9))
+    steps = math.ceil((run.end_time - start) / run.dt - 1e-9)
+    # the state at the start, then at most one output a step
+    n_outputs = 1 + max(0, min(steps, math.ceil((run.end_time - start) / run.output_every - 1e-9)))
     cells = mesh.n_global_cells
     vertices = int(comm.allreduce(int(np.count_nonzero(mesh.vertex_owned))))
     corners = mesh.cell_vertices.shape[1]
@@ -375,7 +386,7 @@ def check_disk(comm, model, state, folder: Path) -> str:
         raise CaseError(f"{case.path.name}: [run] output_every = {run.output_every:g} s: {n_outputs:.3g} outputs would "
                         f"write ≈ {size_text(total)} into {folder}, which has {size_text(free)} free; raise output_every, "
                         "shorten end_time, or write elsewhere (--output)")
-    particles = f"{n_now} particles" + (f" + {injected:.3g} injected" if injected else "")
+    particles = f"{n_now} particle{'' if n_now == 1 else 's'}" + (f" + {injected:.3g} injected" if injected else "")
     return (f"  writes:    {n_outputs:.6g} outputs ({particles}) into {folder}: ≈ {size_text(total)} "
             f"(fields.h5 {size_text(fields)}, particles.csv {size_text(csv)}"
             + (f", checkpoints {size_text(checkpoint)}" if checkpoint else "") + ")"
