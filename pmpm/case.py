@@ -459,6 +459,9 @@ def check_consistency(case: Case) -> None:
     for i, inj in enumerate(case.injections):
         if inj.stop < inj.start:
             raise CaseError(f"{name}: [[injection]] #{i}: stop = {inj.stop} must be >= start = {inj.start}")
+        if not (min(inj.stop, run.end_time) - inj.start) / inj.interval <= MAX_STEPS:
+            raise CaseError(f"{name}: [[injection]] #{i}: interval = {inj.interval:g} s is too small: more than "
+                            f"{MAX_STEPS:.2g} releases before end_time; raise interval")
         if inj.kind == "random" and (inj.lower is None or inj.upper is None):
             raise CaseError(f"{name}: [[injection]] #{i}: kind = \"random\" needs lower = [...] and upper = [...]")
         if inj.kind == "random" and not all(l <= u for l, u in zip(inj.lower, inj.upper)):

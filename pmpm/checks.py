@@ -20,8 +20,9 @@ from pathlib import Path
 import numpy as np
 from mpi4py import MPI
 
-from .case import Case, format_value, suggest
+from .case import Case, Section, format_value, suggest
 from .errors import CaseError
+from .injection import Injector
 from .io import output_folder_problem
 from .parallel import agree, warn
 
@@ -323,7 +324,9 @@ def check_injections(comm, model, state, samples: int = 64) -> None:
             continue
         last = max(first, int(math.floor((last_time - s.start) / s.interval + 1e-9)))
         releases = np.unique(np.linspace(first, last, min(samples, last - first + 1)).round().astype(np.int64))
-        points = np.concatenate([injector.release(int(k)).x for k in releases])
+        # a few particles of each sampled release tell where it lands (count may be large)
+        few = Injector(Section({**s.values, "count": min(s.count, 8)}), injector.index, injector.seed)
+        points = np.concatenate([few.release(int(k)).x for k in releases])
         inside = mesh.inside_domain(points).reshape(len(releases), -1)
         if not inside.any():
             first_point = points[0]

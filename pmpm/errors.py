@@ -18,3 +18,9 @@ class NumericalError(Exception):
     """
 
     exit_status = 3
+
+
+def one_line(text: str) -> str:
+    """``text`` with its control characters (newlines, carriage returns, ...) escaped: a message that
+    quotes user input (``--set "a=\\n"``) stays the one line SPEC §2 promises."""
+    return "".join(c if c.isprintable() else c.encode("unicode_escape").decode("ascii") for c in text)
