@@ -28,7 +28,7 @@ class Key:
     name: str
     kind: str  # float | int | bool | str | vec3 | ivec3 | strings
     default: Any = REQUIRED
-    check: str = ""  # ">0", ">=0", "0..1", or "" (none)
+    check: str = ""  # ">0", ">=0", "0..1", "(0,1)" (both ends excluded), or "" (none)
     choices: tuple = ()
     unit: str = ""
     help: str = ""
@@ -64,7 +64,7 @@ SCHEMA: dict[str, tuple[Key, ...]] = {
         Key("viscosity", "float", check=">0", unit="Pa s", help="dynamic viscosity"),
         Key("convection", "str", "linear_upwind", choices=("upwind", "linear_upwind", "central"),
             help="face interpolation of the convected velocity"),
-        Key("pressure_rtol", "float", 1e-8, ">0", help="relative tolerance of the pressure solve"),
+        Key("pressure_rtol", "float", 1e-8, "(0,1)", help="relative tolerance of the pressure solve"),
         Key("nonorthogonal_correctors", "int", 1, ">=0", help="extra pressure solves on skewed meshes"),
     ),
     "boundary.*": (
@@ -418,6 +418,8 @@ def check_value(value, key: Key, label: str, filename: str, where: str = ""):
         raise CaseError(f"{where}: must be >= 0{unit}")
     if key.check == "0..1" and not all(0 <= v <= 1 for v in numbers):
         raise CaseError(f"{where}: must be between 0 and 1")
+    if key.check == "(0,1)" and not all(0 < v < 1 for v in numbers):
+        raise CaseError(f"{where}: must be > 0 and < 1")
     return value
 
 
