@@ -145,12 +145,6 @@ def check_memory(comm, case: Case) -> None:
     cells = math.prod(case.box.cells) * (6 if cell_type == "tet" else 1)
     where = f"{case.path.name}: [mesh.box] cells = {format_value(case.box.cells)}"
     shape = "tetrahedra" if cell_type == "tet" else "hexahedra"
-    from petsc4py import PETSc
-    index_bits = 8 * np.dtype(PETSc.IntType).itemsize
-    most = int((2 ** (index_bits - 1) - 1) / POINTS_PER_CELL[cell_type])
-    if cells > most:
-        raise CaseError(f"{where}: {cells:.3g} {shape}, more than the {most:.3g} that PETSc's {index_bits}-bit "
-                        "indices can number; use fewer cells")
     per_cell = BYTES_PER_CELL[(cell_type, case.fluid is not None)]
     node = comm.Split_type(MPI.COMM_TYPE_SHARED)
     ranks_here = node.size
@@ -163,6 +157,12 @@ def check_memory(comm, case: Case) -> None:
                           f"({ranks_here} rank(s) here, ≈ {per_cell} B per cell{' with the flow' if case.fluid else ''}), "
                           f"which has {size_text(total)} ({size_text(available or 0)} free); use fewer cells or more machines")
     agree(comm, error)
+    from petsc4py import PETSc
+    index_bits = 8 * np.dtype(PETSc.IntType).itemsize
+    most = int((2 ** (index_bits - 1) - 1) / POINTS_PER_CELL[cell_type])
+    if cells > most:
+        raise CaseError(f"{where}: {cells:.3g} {shape}, more than the {most:.3g} that PETSc's {index_bits}-bit "
+                        "indices can number; use fewer cells")
     if available is not None and need > available and comm.rank == 0:
         warn(comm, f"[mesh.box] cells = {format_value(case.box.cells)}: {cells:.3g} {shape} need ≈ {size_text(need)} "
                    f"of memory on this machine, more than the {size_text(available)} free now")
@@ -191,8 +191,8 @@ def machine_memory() -> tuple[int | None, int | None]:
 
 def size_text(n_bytes: float) -> str:
     """``1.2 GB``: bytes in decimal units."""
-    for unit in ("B", "kB", "MB", "GB", "TB", "PB"):
-        if abs(n_bytes) < 1000 or unit == "PB":
+    for unit in ("B", "kB", "MB", "GB", "TB", "PB", "EB"):
+        if abs(n_bytes) < 1000 or unit == "EB":
             return f"{n_bytes:.3g} {unit}"
         n_bytes /= 1000
     return ""

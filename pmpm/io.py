@@ -46,7 +46,7 @@ def output_folder_problem(folder: Path) -> str | None:
         shown = ", ".join(foreign[:3]) + (", …" if len(foreign) > 3 else "")
         return (f"holds other things than pmpm's results ({shown}); pmpm writes into a new or empty folder, or "
                 "renames a folder of its own earlier results to keep them: name another folder with --output")
-    if entries and folder.resolve() == Path.cwd().resolve():
+    if any((folder / f).exists() for f in RESULT_FILES) and folder.resolve() == Path.cwd().resolve():
         return ("holds earlier results and is the current folder, which pmpm does not rename: name another "
                 "folder with --output")
     return None

@@ -164,10 +164,16 @@ def test_suspicious_boundaries_are_warned_about(tmp_path):
 
 
 # -- item 5: tracebacks that became exit 2 ------------------------------------------------------
-def test_box_beyond_petsc_indices_is_refused_before_building(tmp_path):
+def test_box_of_1e15_cells_is_refused_before_building(tmp_path, monkeypatch):
     case = make_case(tmp_path, FLOW)
+    line = refused(run_in_process(case, "--check", "--set", "mesh.box.cells=[100000,100000,100000]"),
+                   "[mesh.box] cells = [100000, 100000, 100000]: 1e+15 hexahedra need ≈ 2.3 EB of memory",
+                   "which has")
+    assert "B free)" in line
+    # a machine that could hold them: PETSc's 32-bit indices cannot number them
+    monkeypatch.setattr(checks, "machine_memory", lambda: (10 ** 19, 10 ** 19))
     refused(run_in_process(case, "--check", "--set", "mesh.box.cells=[100000,100000,100000]"),
-            "[mesh.box] cells = [100000, 100000, 100000]: 1e+15 hexahedra", "indices")
+            "1e+15 hexahedra, more than the 2.68e+08 that PETSc's 32-bit indices can number")
 
 
 def test_box_beyond_this_machines_memory_is_refused_with_the_estimate(tmp_path, monkeypatch):
