@@ -1,5 +1,5 @@
 """Injections (the paper's Table 1): release times, positions, reproducibility from the seed, and
-ids that are never reused in a run."""
+ids that are never reused in a run; the particle file, whose bad values are named by line and column."""
 import numpy as np
 import pytest
 from mpi4py import MPI
