@@ -262,7 +262,7 @@ def check_boundary_fluxes(comm, case: Case, mesh) -> None:
                 raise CaseError(f"{name}: [boundary.{boundary}] velocity = {format_value(section.velocity)}, "
                                 f"angular_velocity = {format_value(section.angular_velocity)}, center = "
                                 f"{format_value(section.center)}: the wall's surface would carry fluid through the "
-                                f"wall ({through[index]:.3g} m³/s in and out, net {flux[index]:.3g} m³/s); a wall's "
+                                f"wall ({through[index]:.3g} m³/s across its faces, net {flux[index]:.3g} m³/s); a wall's "
                                 "surface can only slide along itself: give a motion along the wall, or make the "
                                 "boundary an inlet")
             if normal_part[index] > WALL_NORMAL_WARNED and comm.rank == 0:
