@@ -68,7 +68,7 @@ def main(argv: list[str] | None = None) -> int:
     petsc4py.init([sys.argv[0]] + petsc_options)
     from mpi4py import MPI
 
-    from .errors import CaseError, NumericalError, Stopped
+    from .errors import CaseError, NumericalError, Stopped, one_line
 
     comm = MPI.COMM_WORLD
     try:
@@ -81,7 +81,7 @@ def main(argv: list[str] | None = None) -> int:
     except (CaseError, NumericalError, Stopped) as error:
         if comm.rank == 0:
             kind = {CaseError: "error: ", NumericalError: "numerical failure: ", Stopped: ""}[type(error)]
-            print(f"pmpm: {kind}{error}", file=sys.stderr, flush=True)
+            print(f"pmpm: {kind}{one_line(str(error))}", file=sys.stderr, flush=True)
         # Errors are collective (pmpm.parallel.agree). Only rank 0 reports the status, after the
         # others wait for its line: mpirun may drop a rank's output once another exits non-zero.
         comm.Barrier()

@@ -29,3 +29,9 @@ class Stopped(Exception):
     def __init__(self, message: str, signal_number: int):
         super().__init__(message)
         self.exit_status = 128 + signal_number
+
+
+def one_line(text: str) -> str:
+    """``text`` with its control characters (newlines, carriage returns, ...) escaped: a message that
+    quotes user input (``--set "a=\\n"``) stays the one line SPEC §2 promises."""
+    return "".join(c if c.isprintable() else c.encode("unicode_escape").decode("ascii") for c in text)

@@ -45,22 +45,35 @@ class NewParticles:
         return len(self.radius)
 
 
+COLUMN_UNITS = {"x": "m", "y": "m", "z": "m", "vx": "m/s", "vy": "m/s", "vz": "m/s",
+                "wx": "rad/s", "wy": "rad/s", "wz": "rad/s", "radius": "m", "density": "kg/m³"}
+
+
 def read_particle_file(path: Path) -> NewParticles:
     """The ASCII particle file: a header naming the columns, one particle a line (commas or blanks)."""
+    if path.is_dir():
+        raise CaseError(f"{path}: is a folder, not a particle file")
     if not path.is_file():
         raise CaseError(f"{path}: particle file not found")
-    lines = [line for line in path.read_text().splitlines() if line.strip() and not line.lstrip().startswith("#")]
+    try:
+        text = path.read_text(encoding="utf-8-sig")  # a byte-order mark is not part of the header
+    except (OSError, UnicodeDecodeError) as error:
+        raise CaseError(f"{path}: cannot read the particle file: {getattr(error, 'strerror', None) or error}") from None
+    # (line number in the file, text) of the lines that hold something
+    lines = [(number, line) for number, line in enumerate(text.splitlines(), start=1)
+             if line.strip() and not line.lstrip().startswith("#")]
     if not lines:
         raise CaseError(f"{path}: empty particle file (expected a header line naming the columns)")
-    header = lines[0].replace(",", " ").split()
+    header_number, header_line = lines[0]
+    header = header_line.replace(",", " ").split()
     for name in header:
         if name not in FILE_COLUMNS:
-            raise CaseError(f"{path}: line 1: unknown column \"{name}\"; allowed: {' '.join(FILE_COLUMNS)}")
+            raise CaseError(f"{path}: line {header_number}: unknown column \"{name}\"; allowed: {' '.join(FILE_COLUMNS)}")
     missing = [c for c in REQUIRED_COLUMNS if c not in header]
     if missing:
-        raise CaseError(f"{path}: line 1: missing column(s) {', '.join(missing)}")
+        raise CaseError(f"{path}: line {header_number}: missing column(s) {', '.join(missing)}")
     rows = []
-    for number, line in enumerate(lines[1:], start=2):
+    for number, line in lines[1:]:
         fields = line.replace(",", " ").split()
         try:
             values = [float(v) for v in fields]
@@ -70,15 +83,21 @@ def read_particle_file(path: Path) -> NewParticles:
             raise CaseError(f"{path}: line {number}: {len(values)} values for {len(header)} columns")
         rows.append(values)
     table = np.array(rows, float).reshape(-1, len(header))
+    # the first bad value, named by its line and column
+    positive = np.array([name in ("radius", "density") for name in header])
+    bad = ~np.isfinite(table) | (positive & ~(table > 0))
+    if bad.any():
+        row, col = np.argwhere(bad)[0]
+        name = header[col]
+        rule = "finite and > 0" if positive[col] else "finite"
+        raise CaseError(f"{path}: line {lines[1 + row][0]}: {name} = {table[row, col]:g}: must be {rule} "
+                        f"({COLUMN_UNITS[name]})")
     column = {name: table[:, i] for i, name in enumerate(header)}
     zeros = np.zeros(len(table))
 
     def vec(names):
         return np.column_stack([column.get(n, zeros) for n in names])
 
-    bad = np.flatnonzero((column["radius"] <= 0) | (column["density"] <= 0) | ~np.isfinite(table).all(axis=1))
-    if bad.size:
-        raise CaseError(f"{path}: line {bad[0] + 2}: radius and density must be finite and > 0")
     return NewParticles(vec("xyz"), vec(("vx", "vy", "vz")), vec(("wx", "wy", "wz")),
                         column["radius"].copy(), column["density"].copy(), np.zeros(len(table), np.int8))
 

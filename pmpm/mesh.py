@@ -110,7 +110,9 @@ class Mesh:
             # a boundary face is found in the file's list of tagged faces by its sorted vertex ids
             keys = np.sort(mesh.vertex_serial[mesh.face_vertices[faces]], axis=1)[:, :3]
             where = match_rows(keys, tagged_faces[0])
-            index = np.where(where >= 0, tagged_faces[1][np.maximum(where, 0)], len(tag_names))
+            # a file without named surfaces (e.g. only a volume group): every face is "boundary"
+            tagged = tagged_faces[1][np.maximum(where, 0)] if len(tagged_faces[1]) else np.zeros(len(where), np.int64)
+            index = np.where(where >= 0, tagged, len(tag_names))
             names = tag_names + [UNNAMED_BOUNDARY]
             # drop names no face carries (collectively, so every rank keeps the same list)
             used = np.zeros(len(names), np.int64)
@@ -528,6 +530,8 @@ def read_mesh_file(path: Path):
     """
     import meshio
 
+    if path.is_dir():
+        raise CaseError(f"{path}: is a folder, not a mesh file")
     if not path.is_file():
         raise CaseError(f"{path}: mesh file not found")
     chatter = io.StringIO()

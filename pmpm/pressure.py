@@ -202,10 +202,18 @@ class CellKSP:
             raise NumericalError(
                 f"the {self.what} solve did not converge at step {step}, t = {time:.6g} s: KSP "
                 f"{ksp_reason_name(reason)} after {self.iterations} iterations (residual "
-                f"{self.ksp.getResidualNorm():.3g}, |b| {self._b.norm():.3g}); reduce [run] dt or try "
-                f"another -{self.ksp.getOptionsPrefix()}pc_type")
+                f"{self.ksp.getResidualNorm():.3g}, |b| {self._b.norm():.3g}); {self._advice()}")
         solution[:self.n_owned] = self._x_array
         return self.iterations
+
+    def _advice(self) -> str:
+        """What to change after a failed solve. The momentum matrix V/dt − ν L is diagonally dominant:
+        CG + Jacobi fails on it only when its right-hand side has blown up, i.e. the time step."""
+        prefix = self.ksp.getOptionsPrefix()
+        if self.what == "momentum":
+            return (f"the flow is likely unstable at this time step: reduce [run] dt first (the CFL number "
+                    f"should stay below 1); a -{prefix}pc_type is seldom the cause")
+        return f"reduce [run] dt or try another -{prefix}pc_type"
 
     def residual_norm(self, rhs: np.ndarray, solution: np.ndarray) -> tuple[float, float]:
         """Collective. (‖b − A x‖, ‖b‖) over all ranks, null space removed from b."""

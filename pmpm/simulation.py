@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 from mpi4py import MPI
 
-from . import checkpoint, io, reporting
+from . import checkpoint, checks, io, reporting
 from .case import Case, case_path, load_case, suggest
 from .collisions import (CollisionSettings, advance_with_collisions, build_walls, check_initial_particles,
                          collision_settings, overlaps_existing)
@@ -452,6 +452,7 @@ def run_from_arguments(comm, arguments) -> None:
     """Collective. Everything ``python -m pmpm`` does after parsing the command line."""
     case = load_case(case_path(arguments.case), arguments.set)
     output = Path(arguments.output) if arguments.output else case.folder / "output"
+    checks.before_building(comm, case)
     restart = checkpoint.read(comm, Path(arguments.restart)) if arguments.restart else None
     start = wallclock.perf_counter()
     mesh = build_mesh(comm, case)
@@ -462,8 +463,10 @@ def run_from_arguments(comm, arguments) -> None:
                                               Path(arguments.restart))
         print0(comm, f"pmpm: restarting from {arguments.restart} at t = {simulation.state.time:g} s, "
                      f"step {simulation.state.step}")
+    writes = checks.before_running(comm, simulation.model, simulation.state, output, arguments.restart)
     setup_seconds = wallclock.perf_counter() - start
     print0(comm, reporting.describe(simulation.model, simulation.state, setup_seconds))
+    print0(comm, writes)
     if arguments.check:
         return
     moved = io.prepare_output_folder(comm, output.resolve())

@@ -1,10 +1,11 @@
 """Injections (the paper's Table 1): release times, positions, reproducibility from the seed, and
-ids that are never reused in a run."""
+ids that are never reused in a run; the particle file, whose bad values are named by line and column."""
 import numpy as np
 import pytest
 from mpi4py import MPI
 
 from pmpm.case import SCHEMA, Section, check_table, load_case
+from pmpm.errors import CaseError
 from pmpm.injection import Injector, read_particle_file
 from pmpm.simulation import Simulation, build_mesh
 
@@ -64,6 +65,50 @@ def test_particle_file_columns(tmp_path):
     np.testing.assert_array_equal(new.v, [[0.0, 0.0, -1.0], [0.0, 0.0, 0.0]])
     np.testing.assert_array_equal(new.radius, [0.01, 0.02])
     assert not new.omega.any()
+
+
+
+def write(tmp_path, text, name="particles.txt"):
+    path = tmp_path / name
+    path.write_text(text)
+    return path
+
+
+def test_columns_comments_and_byte_order_mark(tmp_path):
+    path = tmp_path / "particles.txt"
+    path.write_bytes("\ufeff# two spheres\nx, y, z, vx, vy, vz, radius, density\n\n0.1 0.2 0.3 1 0 0 0.01 1000\n"
+                     "0.4,0.5,0.6,0,0,-1,0.02,2000\n".encode())
+    new = read_particle_file(path)
+    np.testing.assert_array_equal(new.x, [[0.1, 0.2, 0.3], [0.4, 0.5, 0.6]])
+    np.testing.assert_array_equal(new.v, [[1, 0, 0], [0, 0, -1]])
+    np.testing.assert_array_equal(new.omega, 0.0)
+    assert new.radius.tolist() == [0.01, 0.02] and new.density.tolist() == [1000, 2000]
+
+
+@pytest.mark.parametrize("row, message", [
+    ("0.1 0.2 nan 0 0 0 0.01 1000", "line 5: z = nan: must be finite (m)"),
+    ("nan 0.2 0.3 0 0 0 0.01 1000", "line 5: x = nan: must be finite (m)"),
+    ("0.1 0.2 0.3 0 inf 0 0.01 1000", "line 5: vy = inf: must be finite (m/s)"),
+    ("0.1 0.2 0.3 0 0 0 -0.01 1000", "line 5: radius = -0.01: must be finite and > 0 (m)"),
+    ("0.1 0.2 0.3 0 0 0 0.01 0", "line 5: density = 0: must be finite and > 0 (kg/m³)"),
+    ("0.1 0.2 0.3 0 0 0 0.01", "line 5: 7 values for 8 columns"),
+])
+def test_bad_value_is_named_by_its_line_and_column(tmp_path, row, message):
+    # a comment and a blank line before it: the line number is the file's
+    path = write(tmp_path, f"x y z vx vy vz radius density\n# note\n0.1 0.2 0.3 0 0 0 0.01 1000\n\n{row}\n")
+    with pytest.raises(CaseError) as error:
+        read_particle_file(path)
+    assert str(error.value) == f"{path}: {message}"
+
+
+def test_folder_and_unreadable_file(tmp_path):
+    with pytest.raises(CaseError, match="is a folder, not a particle file"):
+        read_particle_file(tmp_path)
+    with pytest.raises(CaseError, match="particle file not found"):
+        read_particle_file(tmp_path / "missing.txt")
+    (tmp_path / "binary.txt").write_bytes(b"x y z radius density\n\xff\xfe\x00\x01\n")
+    with pytest.raises(CaseError, match="cannot read the particle file"):
+        read_particle_file(tmp_path / "binary.txt")
 
 
 FALLING_THROUGH = """

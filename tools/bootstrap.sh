@@ -6,7 +6,7 @@ root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 venv="$root/.venv"
 packages="python3 python3-venv python3-pip python3-numpy python3-scipy python3-petsc4py
   python3-mpi4py python3-h5py-mpi python3-meshio python3-pytest python3-pytest-mpi openmpi-bin
-  python3-matplotlib"
+  python3-matplotlib python3-hypothesis"
 petsc_site=/usr/lib/petscdir/petsc3.18/x86_64-linux-gnu-real/lib/python3/dist-packages
 
 missing=$(dpkg-query -W -f='${Package} ${Status}\n' $packages 2>/dev/null \
