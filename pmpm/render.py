@@ -29,7 +29,7 @@ from .errors import CaseError
 from .render_geometry import VIEWS, View, arrow_points, domain_outline, shade_spheres, slice_polygons
 
 FIELDS = {"speed": ("fluid speed", "m/s", "Blues"),
-          "pressure": ("fluid pressure", "Pa", "PuOr_r"),
+          "pressure": ("pressure less ρ g·x", "Pa", "PRGn"),     # as written: hydrostatic part removed
           "volume_fraction": ("particle volume fraction", "–", "Greys")}
 PARTICLE_COLOURS = {"speed": ("particle speed", "m/s"), "radius": ("particle radius", "m")}
 PARTICLE_COLOURMAP = "YlOrRd"
@@ -215,19 +215,19 @@ def read_frame(run: RunOutput, index: int, slice_cells: np.ndarray, field: str |
     return Frame(float(run.times[index]), position, velocity, radius, values, slice_velocity)
 
 
-def colour_limits(values: list[np.ndarray], robust: bool) -> tuple[float, float]:
+def colour_limits(values: list[np.ndarray], robust: bool, from_zero: bool = True) -> tuple[float, float]:
     """Colour range over all the pictures of one command, so that a series of frames compares.
 
     ``robust`` takes the 1st and 99th percentiles (a pressure spike at one cell would wash out the
-    rest); otherwise 0 (or the minimum, if negative) to the maximum.
+    rest); otherwise the minimum (or 0, ``from_zero``, if lower) to the maximum.
     """
     joined = np.concatenate([v for v in values if v is not None and v.size] or [np.zeros(1)])
     if robust:
         low, high = np.percentile(joined, [1, 99])
     else:
-        low, high = min(joined.min(), 0.0), joined.max()
+        low, high = (min(joined.min(), 0.0) if from_zero else joined.min()), joined.max()
     if high <= low:
-        high = low + max(abs(low), 1.0) * 1e-3
+        high = low + (abs(low) * 1e-3 if low else 1e-3)
     return float(low), float(high)
 
 
@@ -249,6 +249,8 @@ class Picture:
     path : Path
     time : float
         Simulated time shown (s).
+    size : (int, int)
+        Width and height (pixels).
     limits : (float, float, float, float)
         Axes limits: left, right, bottom, top (m).
     axes_origin : (float, float)
@@ -258,14 +260,14 @@ class Picture:
 
     path: Path
     time: float
+    size: tuple
     limits: tuple
     axes_origin: tuple
     metres_per_pixel: float
 
     def pixel_of(self, right: float, up: float) -> tuple[float, float]:
         """(column, row) in the PNG, row 0 at the top, of a point in picture coordinates (m)."""
-        from matplotlib.image import imread
-        height = imread(self.path).shape[0]
+        height = self.size[1]
         column = self.axes_origin[0] + (right - self.limits[0]) / self.metres_per_pixel
         return column, height - (self.axes_origin[1] + (up - self.limits[2]) / self.metres_per_pixel)
 
@@ -293,6 +295,9 @@ def render_frame(frame: Frame, run: RunOutput, view: View, plane_at: float, poly
         axes.set_ylabel(f"{view.up_name} (m)")
         n_particles = len(frame.radius)
         drawn = "1 particle at its true radius" if n_particles == 1 else f"{n_particles} particles at their true radius"
+        if field is not None:   # the opaque slice hides what lies wholly behind it
+            behind = np.count_nonzero(view.nearness(frame.position) + frame.radius <= view.nearness_of(plane_at))
+            drawn += f" ({behind} behind the plane)" if behind else ""
         title = f"{run.name} — t = {frame.time:.4g} s\n{drawn}, view along {view.looking}"
         if options.vectors:
             title += "\n" + draw_vectors(axes, polygons, frame.slice_velocity, view)
@@ -341,7 +346,7 @@ def render_frame(frame: Frame, run: RunOutput, view: View, plane_at: float, poly
                                 interpolation="nearest", zorder=zorder)
         with open(path, "xb") as file:    # exclusive: never replaces a picture
             figure.savefig(file, format="png", dpi=100)
-        return Picture(path, frame.time, limits, (box.x0, box.y0), metres_per_pixel)
+        return Picture(path, frame.time, (width, height), limits, (box.x0, box.y0), metres_per_pixel)
     finally:
         pyplot.close(figure)
 
@@ -396,12 +401,10 @@ def render(arguments: argparse.Namespace) -> list[Picture]:
     """Write the pictures asked for; print one line per picture."""
     run = RunOutput.read(arguments.output_dir)
     with_fluid = "velocity" in run.cell_fields
-    if arguments.field is None:
-        arguments.field = "speed" if with_fluid else "none"
-    if arguments.field == "none":
-        arguments.field = None
-    if (arguments.field or arguments.vectors) and not with_fluid:
-        asked = f"--field {arguments.field}" if arguments.field else "--vectors"
+    field = arguments.field or ("speed" if with_fluid else "none")
+    field = None if field == "none" else field
+    if (field or arguments.vectors) and not with_fluid:
+        asked = f"--field {field}" if field else "--vectors"
         raise CaseError(f"render: {asked}: {run.path} holds no cell fields (the run solved no fluid)")
     chosen = run.select(arguments.times, arguments.every)
     view = VIEWS[arguments.plane]
@@ -418,23 +421,19 @@ def render(arguments: argparse.Namespace) -> list[Picture]:
 
     outline = domain_outline(run.vertices, run.cells, view)
     slice_cells, polygons = (slice_polygons(run.vertices, run.cells, view, plane_at)
-                             if with_fluid and (arguments.field or arguments.vectors) else (np.zeros(0, int), None))
-    frames = [read_frame(run, index, slice_cells, arguments.field, arguments.vectors) for index in chosen]
-    field_limits = colour_limits([f.slice_values for f in frames], robust=arguments.field == "pressure")
-    particle_values = [f.radius if arguments.particle_colour == "radius" else np.linalg.norm(f.velocity, axis=1)
-                       for f in frames]
-    particle_limits = colour_limits(particle_values, robust=False)
-    if arguments.particle_colour == "radius":
-        joined = np.concatenate(particle_values + [np.zeros(0)])
-        if joined.size:   # radii from the smallest: colour shows the difference
-            particle_limits = (float(joined.min()), float(max(joined.max(), joined.min() * 1.001)))
-    if arguments.size is None:
-        n_colourbars = (arguments.field is not None) + any(len(f.radius) for f in frames)
-        arguments.size = default_size(picture_limits(outline), n_colourbars)
+                             if field or arguments.vectors else (np.zeros(0, int), None))
+    frames = [read_frame(run, index, slice_cells, field, arguments.vectors) for index in chosen]
+    field_limits = colour_limits([f.slice_values for f in frames], robust=field == "pressure")
+    by_radius = arguments.particle_colour == "radius"
+    particle_limits = colour_limits([f.radius if by_radius else np.linalg.norm(f.velocity, axis=1) for f in frames],
+                                    robust=False, from_zero=not by_radius)
+    size = arguments.size or default_size(picture_limits(outline),
+                                          (field is not None) + any(len(f.radius) for f in frames))
+    options = argparse.Namespace(**{**vars(arguments), "field": field, "size": tuple(size)})
     written = []
     for index, frame in zip(chosen, frames):
-        stem = f"{arguments.field or 'particles'}_{arguments.plane}_{index:06d}"
-        picture = render_frame(frame, run, view, plane_at, polygons, outline, arguments, field_limits,
+        stem = f"{field or 'particles'}_{arguments.plane}_{index:06d}"
+        picture = render_frame(frame, run, view, plane_at, polygons, outline, options, field_limits,
                                particle_limits, new_picture_path(folder, stem))
         print(f"{picture.path}  t = {frame.time:.6g} s", flush=True)
         written.append(picture)

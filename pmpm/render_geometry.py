@@ -208,7 +208,7 @@ def arrow_points(polygons: np.ndarray, spacing: float) -> tuple[np.ndarray, np.n
 
 
 def shade_spheres(centre: np.ndarray, nearness: np.ndarray, radius: np.ndarray, colour: np.ndarray,
-                  shape: tuple[int, int], split: float | None = None, chunk_pixels: int = 4_000_000):
+                  shape: tuple[int, int], split: float | None = None, chunk_pixels: int = 1_000_000):
     """Rasterise spheres into RGBA images, nearest surface per pixel, shaded.
 
     All lengths in pixels of the image. Each sphere covers the pixels whose centres lie within its
