@@ -128,6 +128,8 @@ class RunOutput:
             raise CaseError(f"render: {path}: not a pmpm fields file ({error})") from None
         if not groups:
             raise CaseError(f"render: {path}: holds no output time yet")
+        if len(vertices) < 2 ** 31:   # half the memory for the face and edge sorts of big meshes
+            cells = cells.astype(np.int32)
         return cls(path, vertices, cells, [f"output/{g}" for g in groups], times, cell_fields, case_name(folder))
 
     def select(self, times_asked: str, every: int) -> np.ndarray:
@@ -201,17 +203,17 @@ def read_frame(run: RunOutput, index: int, slice_cells: np.ndarray, field: str |
     import h5py
     with h5py.File(run.path, "r") as f:
         group = f[run.groups[index]]
-        particles = group["particles"]
-        position = particles["position"][...].reshape(-1, 3)
-        velocity = particles["velocity"][...].reshape(-1, 3)
-        radius = particles["radius"][...].reshape(-1)
-        slice_velocity = group["velocity"][...][slice_cells] if (vectors or field == "speed") else None
-        if field == "speed":
-            values = np.linalg.norm(slice_velocity, axis=1)
-        elif field is not None:
-            values = group[field][...][slice_cells]
-        else:
-            values = None
+        try:
+            particles = group["particles"]
+            position = particles["position"][...].reshape(-1, 3)
+            velocity = particles["velocity"][...].reshape(-1, 3)
+            radius = particles["radius"][...].reshape(-1)
+            slice_velocity = group["velocity"][...][slice_cells] if (vectors or field == "speed") else None
+            values = group[field][...][slice_cells] if field not in (None, "speed") else None
+        except KeyError as error:   # a run killed while writing this time
+            raise CaseError(f"render: {run.path}: /{run.groups[index]} is incomplete ({error})") from None
+    if field == "speed":
+        values = np.linalg.norm(slice_velocity, axis=1)
     return Frame(float(run.times[index]), position, velocity, radius, values, slice_velocity)
 
 
@@ -276,79 +278,93 @@ def render_frame(frame: Frame, run: RunOutput, view: View, plane_at: float, poly
                  outline: np.ndarray, options: argparse.Namespace, field_limits, particle_limits,
                  path: Path) -> Picture:
     """Draw one picture and write it as a new PNG at ``path`` (never replacing a file)."""
+    # A Figure of its own, not pyplot's: no display, no global state, nothing to close.
     import matplotlib
-    matplotlib.use("Agg")
-    from matplotlib import cm, colors, pyplot
+    from matplotlib import cm, colors
     from matplotlib.collections import LineCollection, PolyCollection
+    from matplotlib.figure import Figure
 
     width, height = options.size
     field = options.field
-    figure = pyplot.figure(figsize=(width / 100, height / 100), dpi=100, layout="compressed")
-    try:
-        axes = figure.add_subplot()
-        limits = picture_limits(outline)
-        axes.set_xlim(limits[0], limits[1])
-        axes.set_ylim(limits[2], limits[3])
-        axes.set_aspect("equal", adjustable="box")
-        axes.set_autoscale_on(False)
-        axes.set_xlabel(f"{view.right_name} (m)")
-        axes.set_ylabel(f"{view.up_name} (m)")
-        n_particles = len(frame.radius)
-        drawn = "1 particle at its true radius" if n_particles == 1 else f"{n_particles} particles at their true radius"
-        if field is not None:   # the opaque slice hides what lies wholly behind it
-            behind = np.count_nonzero(view.nearness(frame.position) + frame.radius <= view.nearness_of(plane_at))
-            drawn += f" ({behind} behind the plane)" if behind else ""
-        title = f"{run.name} — t = {frame.time:.4g} s\n{drawn}, view along {view.looking}"
-        if options.vectors:
-            title += "\n" + draw_vectors(axes, polygons, frame.slice_velocity, view)
-        axes.set_title(title, fontsize="medium")
+    figure = Figure(figsize=(width / 100, height / 100), dpi=100, layout="compressed")
+    axes = figure.add_subplot()
+    limits = picture_limits(outline)
+    axes.set_xlim(limits[0], limits[1])
+    axes.set_ylim(limits[2], limits[3])
+    axes.set_aspect("equal", adjustable="box")
+    axes.set_autoscale_on(False)
+    axes.set_xlabel(f"{view.right_name} (m)")
+    axes.set_ylabel(f"{view.up_name} (m)")
+    n_particles = len(frame.radius)
+    drawn = "1 particle at its true radius" if n_particles == 1 else f"{n_particles} particles at their true radius"
+    if field is not None:   # the opaque slice hides what lies wholly behind it
+        behind = np.count_nonzero(view.nearness(frame.position) + frame.radius <= view.nearness_of(plane_at))
+        drawn += f" ({behind} behind the plane)" if behind else ""
+    title = f"{run.name} — t = {frame.time:.4g} s\n{drawn}, view along {view.looking}"
+    if options.vectors:
+        title += "\n" + draw_vectors(axes, polygons, frame.slice_velocity, view)
+    axes.set_title(title, fontsize="medium")
 
-        if field is not None:
-            label, unit, colourmap = FIELDS[field]
-            field_norm = colors.Normalize(*field_limits)
-            slice_collection = PolyCollection(polygons, array=frame.slice_values, cmap=colourmap, norm=field_norm,
-                                              edgecolors="face", linewidths=0.3, zorder=1)
-            axes.add_collection(slice_collection)
-            figure.colorbar(slice_collection, ax=axes, shrink=0.8, pad=0.01,
-                            extend="both" if field == "pressure" else "neither",
-                            label=f"{label} on {view.normal_name} = {plane_at:.4g} m ({unit})")
-        axes.add_collection(LineCollection(outline, colors="0.25", linewidths=1.0, zorder=2))
+    if field is not None:
+        label, unit, colourmap = FIELDS[field]
+        field_norm = colors.Normalize(*field_limits)
+        slice_collection = PolyCollection(polygons, array=frame.slice_values, cmap=colourmap, norm=field_norm,
+                                          edgecolors="face", linewidths=0.3, zorder=1)
+        axes.add_collection(slice_collection)
+        figure.colorbar(slice_collection, ax=axes, shrink=0.8, pad=0.01,
+                        extend="both" if field == "pressure" else "neither",
+                        label=f"{label} on {view.normal_name} = {plane_at:.4g} m ({unit})")
+    axes.add_collection(LineCollection(outline, colors="0.25", linewidths=1.0, zorder=2))
 
-        particle_label, particle_unit = PARTICLE_COLOURS[options.particle_colour]
-        particle_norm = colors.Normalize(*particle_limits)
-        particle_colourmap = colors.LinearSegmentedColormap.from_list(
-            "particles", pyplot.get_cmap(PARTICLE_COLOURMAP)(np.linspace(0.2, 1.0, 256)))
-        if n_particles:
-            figure.colorbar(cm.ScalarMappable(particle_norm, particle_colourmap), ax=axes, shrink=0.8, pad=0.01,
-                            label=f"{particle_label} ({particle_unit})")
+    particle_label, particle_unit = PARTICLE_COLOURS[options.particle_colour]
+    particle_norm = colors.Normalize(*particle_limits)
+    particle_colourmap = colors.LinearSegmentedColormap.from_list(
+        "particles", matplotlib.colormaps[PARTICLE_COLOURMAP](np.linspace(0.2, 1.0, 256)))
+    if n_particles:
+        figure.colorbar(cm.ScalarMappable(particle_norm, particle_colourmap), ax=axes, shrink=0.8, pad=0.01,
+                        label=f"{particle_label} ({particle_unit})")
 
-        # Fix the layout now: the particle image must match the axes' pixels one to one.
-        figure.draw_without_rendering()
-        figure.set_layout_engine("none")
-        box = axes.get_window_extent()
-        n_x, n_y = max(int(round(box.width)), 1), max(int(round(box.height)), 1)
-        metres_per_pixel = (limits[1] - limits[0]) / n_x
-        if n_particles:
-            values = frame.radius if options.particle_colour == "radius" else np.linalg.norm(frame.velocity, axis=1)
-            centre = view.project(frame.position)
-            nearness = view.nearness(frame.position)
-            split = view.nearness_of(plane_at) if (field is not None or options.vectors) else None
-            layers = shade_spheres((centre - [limits[0], limits[2]]) / metres_per_pixel * SUPERSAMPLING,
-                                   nearness / metres_per_pixel * SUPERSAMPLING,
-                                   frame.radius / metres_per_pixel * SUPERSAMPLING,
-                                   particle_colourmap(particle_norm(values))[:, :3],
-                                   (n_y * SUPERSAMPLING, n_x * SUPERSAMPLING),
-                                   None if split is None else split / metres_per_pixel * SUPERSAMPLING)
-            extent = (limits[0], limits[0] + n_x * metres_per_pixel, limits[2], limits[2] + n_y * metres_per_pixel)
-            for layer, zorder in zip(layers, (0.5, 3)):   # behind the slice, then in front of everything
-                if layer is not None:
-                    axes.imshow(downsample(layer, SUPERSAMPLING), origin="lower", extent=extent,
-                                interpolation="nearest", zorder=zorder)
-        with open(path, "xb") as file:    # exclusive: never replaces a picture
-            figure.savefig(file, format="png", dpi=100)
-        return Picture(path, frame.time, (width, height), limits, (box.x0, box.y0), metres_per_pixel)
-    finally:
-        pyplot.close(figure)
+    # Fix the layout now: the particle image must match the axes' pixels one to one.
+    figure.draw_without_rendering()
+    figure.set_layout_engine("none")
+    box = axes.get_window_extent()
+    n_x, n_y = max(int(round(box.width)), 1), max(int(round(box.height)), 1)
+    metres_per_pixel = (limits[1] - limits[0]) / n_x
+    if n_particles:
+        values = frame.radius if options.particle_colour == "radius" else np.linalg.norm(frame.velocity, axis=1)
+        plane = view.nearness_of(plane_at) if (field is not None or options.vectors) else None
+        draw_spheres(axes, frame, view, particle_colourmap(particle_norm(values))[:, :3], plane,
+                     (limits[0], limits[2]), metres_per_pixel, (n_y, n_x))
+    with open(path, "xb") as file:    # exclusive: never replaces a picture
+        figure.savefig(file, format="png", dpi=100)
+    return Picture(path, frame.time, (width, height), limits, (box.x0, box.y0), metres_per_pixel)
+
+
+def draw_spheres(axes, frame: Frame, view: View, colour: np.ndarray, plane: float | None,
+                 corner: tuple[float, float], metres_per_pixel: float, shape: tuple[int, int]) -> None:
+    """The particles as shaded spheres, rasterised at ``SUPERSAMPLING`` × the picture's pixels and
+    averaged down, as images filling the axes: the part behind ``plane`` (nearness, m) under the
+    slice, the rest over everything.
+
+    Parameters
+    ----------
+    colour : ndarray, shape (n_particles, 3)
+        Base RGB colour of each sphere.
+    corner : (float, float)
+        Picture coordinates (m) of the axes' lower-left corner.
+    shape : (int, int)
+        Rows and columns of the axes in picture pixels.
+    """
+    to_pixels = SUPERSAMPLING / metres_per_pixel
+    layers = shade_spheres((view.project(frame.position) - corner) * to_pixels,
+                           view.nearness(frame.position) * to_pixels, frame.radius * to_pixels, colour,
+                           (shape[0] * SUPERSAMPLING, shape[1] * SUPERSAMPLING),
+                           None if plane is None else plane * to_pixels)
+    extent = (corner[0], corner[0] + shape[1] * metres_per_pixel, corner[1], corner[1] + shape[0] * metres_per_pixel)
+    for layer, zorder in zip(layers, (0.5, 3)):   # under the slice (zorder 1), over everything
+        if layer is not None:
+            axes.imshow(downsample(layer, SUPERSAMPLING), origin="lower", extent=extent,
+                        interpolation="nearest", zorder=zorder)
 
 
 def draw_vectors(axes, polygons: np.ndarray, velocity: np.ndarray, view: View) -> str:
@@ -422,6 +438,8 @@ def render(arguments: argparse.Namespace) -> list[Picture]:
     outline = domain_outline(run.vertices, run.cells, view)
     slice_cells, polygons = (slice_polygons(run.vertices, run.cells, view, plane_at)
                              if field or arguments.vectors else (np.zeros(0, int), None))
+    if polygons is not None and len(slice_cells) == 0:
+        raise CaseError(f"render: --at {plane_at:g}: the plane {view.normal_name} = {plane_at:g} m cuts no cell")
     frames = [read_frame(run, index, slice_cells, field, arguments.vectors) for index in chosen]
     field_limits = colour_limits([f.slice_values for f in frames], robust=field == "pressure")
     by_radius = arguments.particle_colour == "radius"
@@ -432,7 +450,8 @@ def render(arguments: argparse.Namespace) -> list[Picture]:
     options = argparse.Namespace(**{**vars(arguments), "field": field, "size": tuple(size)})
     written = []
     for index, frame in zip(chosen, frames):
-        stem = f"{field or 'particles'}_{arguments.plane}_{index:06d}"
+        at = "" if arguments.at is None else f"{arguments.at:g}"   # a plane asked for names its pictures
+        stem = f"{field or 'particles'}_{arguments.plane}{at}_{index:06d}"
         picture = render_frame(frame, run, view, plane_at, polygons, outline, options, field_limits,
                                particle_limits, new_picture_path(folder, stem))
         print(f"{picture.path}  t = {frame.time:.6g} s", flush=True)

@@ -133,7 +133,8 @@ def slice_polygons(vertices: np.ndarray, cells: np.ndarray, view: View, at: floa
 
     Each cut cell's polygon is the convex hull of the points where the plane crosses its edges,
     ordered by angle around their mean. A vertex exactly on the plane counts as below it, so a plane
-    through a layer of faces takes the layer of cells above it, once.
+    through a layer of faces takes the layer of cells above it, once (below it, if there is none
+    above: the plane of the domain's top).
 
     Parameters
     ----------
@@ -155,6 +156,10 @@ def slice_polygons(vertices: np.ndarray, cells: np.ndarray, view: View, at: floa
     above = vertices[:, view.normal] > at
     cell_above = above[cells]
     cut_cells = np.flatnonzero(cell_above.any(axis=1) & ~cell_above.all(axis=1))
+    if cut_cells.size == 0:
+        above = vertices[:, view.normal] >= at
+        cell_above = above[cells]
+        cut_cells = np.flatnonzero(cell_above.any(axis=1) & ~cell_above.all(axis=1))
     edges = cells[cut_cells][:, CELL_EDGES[cells.shape[1]]]                 # (n_cut, n_edges, 2)
     start, end = vertices[edges[..., 0]], vertices[edges[..., 1]]
     crossing = above[edges[..., 0]] != above[edges[..., 1]]

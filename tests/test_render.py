@@ -6,7 +6,7 @@ import subprocess
 
 import numpy as np
 import pytest
-from matplotlib import pyplot
+import matplotlib
 from matplotlib.image import imread
 from mpi4py import MPI
 
@@ -59,6 +59,20 @@ def test_a_sphere_covers_the_pixels_of_its_true_radius(tmp_path):
     assert covered.sum() == pytest.approx(np.pi * radius ** 2, rel=0.03)
 
 
+def test_the_plane_hides_the_part_of_a_sphere_behind_it(tmp_path):
+    """A sphere of radius 2 cm whose centre lies 1 cm behind the coloured plane (still fluid, so the
+    slice is near-white): only its cap in front shows, a disc of radius √(2² − 1²) = 1.73 cm."""
+    output = write_output(tmp_path / "run", {"position": [[0.05, 0.06, 0.05]], "radius": [0.02]},
+                          velocity=lambda centre: np.zeros_like(centre))
+    [picture] = pmpm_render(output, "--size", 700, 600, "--at", 0.05)
+    image = imread(picture.path)[..., :3]
+    column, row = picture.pixel_of(0.05, 0.05)
+    rows, columns = np.mgrid[:image.shape[0], :image.shape[1]]
+    near = np.hypot(columns + 0.5 - column, rows + 0.5 - row) < 0.026 / picture.metres_per_pixel
+    visible = np.sqrt(0.02 ** 2 - 0.01 ** 2) / picture.metres_per_pixel
+    assert (near & (image.min(axis=2) < 0.9)).sum() == pytest.approx(np.pi * visible ** 2, rel=0.03)
+
+
 @pytest.mark.parametrize("small_in_front", [True, False])
 def test_the_nearer_sphere_hides_the_farther(tmp_path, small_in_front):
     """Two spheres on one line of sight, coloured by radius (small pale, big dark red): the small
@@ -70,7 +84,7 @@ def test_the_nearer_sphere_hides_the_farther(tmp_path, small_in_front):
     [picture] = pmpm_render(output, "--size", 500, 400, "--particle-colour", "radius")
     image = imread(picture.path)[..., :3]
     column, row = picture.pixel_of(0.05, 0.05)
-    lowest, highest = (pyplot.get_cmap("YlOrRd")(v)[:3] for v in (0.2, 1.0))
+    lowest, highest = (matplotlib.colormaps["YlOrRd"](v)[:3] for v in (0.2, 1.0))
     centre = image[int(row), int(column)]
     ring = image[int(row), int(column + 0.015 / picture.metres_per_pixel)]   # on the big sphere only
     assert ring[1] < 0.1                        # dark red: little green
@@ -89,7 +103,7 @@ def test_the_slice_shows_the_cell_values(tmp_path, cell_type):
                           cell_type, velocity=velocity)
     [picture] = pmpm_render(output, "--size", 600, 400, "--vectors")
     image = imread(picture.path)[..., :3]
-    blues = pyplot.get_cmap("Blues")
+    blues = matplotlib.colormaps["Blues"]
     for x, speed in ((0.015, 1.0), (0.085, 0.25)):
         column, row = picture.pixel_of(x, 0.035)
         np.testing.assert_allclose(image[int(row), int(column)], blues(speed)[:3], atol=0.02)
@@ -120,6 +134,7 @@ def test_pictures_are_never_replaced(tmp_path, capsys):
     (["{run}", "--times", "0.123"], "no output at t = 0.123 s"),
     (["{run}", "--field", "pressure"], "--field pressure: "),
     (["{run}", "--at", "0.5"], "--at 0.5: outside the domain"),
+    (["{run}", "--every", "0"], "--every 0: must be a whole number >= 1"),
 ])
 def test_bad_input_exits_2_with_one_line(tmp_path, capsys, args, message):
     run = write_output(tmp_path / "run", {"position": [[0.05, 0.05, 0.05]], "radius": [0.01]})
