@@ -4,9 +4,9 @@ tetrahedra in the colours its bar says, pictures are never replaced, and bad inp
 one line."""
 import subprocess
 
+import matplotlib
 import numpy as np
 import pytest
-import matplotlib
 from matplotlib.image import imread
 from mpi4py import MPI
 
