@@ -63,6 +63,9 @@ def parse_arguments(argv):
 
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
+    if argv and argv[0] == "render":  # pictures of a run's output: one process, no MPI or PETSc
+        from .render import main as render_main
+        return render_main(argv[1:])
     ours, petsc_options = split_petsc_options(argv)
     import petsc4py
     petsc4py.init([sys.argv[0]] + petsc_options)
