@@ -1,4 +1,4 @@
-"""Command line (SPEC §1): ``python -m pmpm CASE [--output DIR] [--set K=V]... [--check] [--quiet]``.
+"""Command line (README, "The command line"): ``python -m pmpm CASE [--output DIR] [--set K=V]... [--check] [--quiet]``.
 
 Single-dash options go to PETSc's options database (``-pressure_ksp_type cg``). Exit status:
 0 done, 2 bad input (CaseError), 3 numerical failure (NumericalError), 128 + the signal's number when

@@ -1,4 +1,4 @@
-"""The case file (SPEC §3): ``case.toml`` → one frozen dataclass per section.
+"""The case file: ``case.toml`` → one frozen dataclass per section.
 
 Every key is declared once in ``SCHEMA`` with its type, default, check and unit; the parser, the
 ``--set`` overrides, the error messages and the README's key table all read that one declaration.

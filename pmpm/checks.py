@@ -1,7 +1,7 @@
 """Checks before a run: what a case asks of the solvers, the mesh, this machine and its disk.
 
 Each check refuses what cannot run — a ``CaseError`` on every rank, so exit status 2 with one line
-(SPEC §2) — and warns on what is only suspicious. All of them run under ``--check`` as well:
+(README) — and warns on what is only suspicious. All of them run under ``--check`` as well:
 
 - before the mesh is built (``before_building``): the PETSc options of pmpm's solvers, and the
   memory a box mesh will take against what this machine has;
@@ -311,6 +311,10 @@ def check_injections(comm, model, state, samples: int = 64) -> None:
     case, mesh = model.case, model.mesh
     name, end = case.path.name, case.run.end_time
     smallest = float(np.min(mesh.upper - mesh.lower))
+    if model.injectors and model.flow is not None and model.flow.pressure.pure_neumann and comm.rank == 0:
+        warn(comm, "[[injection]] into a fluid with no outlet: the fluid the new particles displace has nowhere to go "
+                   "(incompressible, in a closed domain), so their volume is spread over the whole domain instead "
+                   "of leaving; add an outlet ([boundary.<name>] type = \"outlet\") for the paper's mass balance")
     for injector, first in zip(model.injectors, state.releases):
         s, i = injector.section, injector.index
         where = f"{name}: [[injection]] #{i} ({s.kind})"

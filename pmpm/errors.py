@@ -1,4 +1,5 @@
-"""Exceptions that map to pmpm's exit statuses (SPEC §1): CaseError → 2, NumericalError → 3."""
+"""Exceptions that map to pmpm's exit statuses (README, "The command line"): CaseError → 2,
+NumericalError → 3, Stopped → 128 + the signal."""
 
 
 class CaseError(Exception):
@@ -33,5 +34,5 @@ class Stopped(Exception):
 
 def one_line(text: str) -> str:
     """``text`` with its control characters (newlines, carriage returns, ...) escaped: a message that
-    quotes user input (``--set "a=\\n"``) stays the one line SPEC §2 promises."""
+    quotes user input (``--set "a=\\n"``) stays the one line the README promises."""
     return "".join(c if c.isprintable() else c.encode("unicode_escape").decode("ascii") for c in text)

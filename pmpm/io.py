@@ -1,4 +1,4 @@
-"""Outputs (SPEC §4): particles.csv, fields.h5 + fields.xdmf, checkpoint.h5, summary.json.
+"""Outputs (README, "Outputs"): particles.csv, fields.h5 + fields.xdmf, checkpoint.h5, summary.json.
 
 Field files are written collectively with parallel HDF5. Cells and vertices are stored in the
 order of the undistributed mesh (``Mesh.cell_serial``), so the same case writes the same file on

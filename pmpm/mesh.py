@@ -3,7 +3,7 @@
 DMPlex does what it is good at: partitioning (ptscotch), ``distribute(overlap=1)`` with finite-volume
 adjacency (one layer of face-neighbour ghost cells), and the star forests that say which local
 point is a copy of which remote one. Everything the time loop touches is built here, once, as
-numpy arrays over the whole rank (STACK.md §4, R2): no per-cell or per-face petsc4py call after
+numpy arrays over the whole rank: no per-cell or per-face petsc4py call after
 construction. The field contract is the table in ARCHITECTURE.md.
 
 Local numbering: owned cells ``[0, n_owned_cells)``, ghost cells after them. Faces hold every face
@@ -29,7 +29,7 @@ from .partition import set_coordinate_partition
 
 BOX_BOUNDARIES = ("xmin", "xmax", "ymin", "ymax", "zmin", "zmax")
 UNNAMED_BOUNDARY = "boundary"
-# Faces of a cell as local vertex indices, PETSc vertex order (STACK.md §2.1). Orientation is fixed
+# Faces of a cell as local vertex indices, PETSc vertex order. Orientation is fixed
 # geometrically afterwards, so only the grouping into faces matters here.
 CELL_FACES = {
     "hex": np.array([(0, 1, 2, 3), (4, 5, 6, 7), (0, 3, 5, 4), (1, 7, 6, 2), (3, 2, 6, 5), (0, 4, 7, 1)]),
@@ -58,7 +58,7 @@ class Mesh:
         cells = [int(n) for n in cells]
         start = wallclock.perf_counter()
         if cell_type == "hex":
-            # PETSc's own generator interpolates 15× faster than createFromCellList (STACK.md §4);
+            # PETSc's own generator interpolates far faster than createFromCellList;
             # it numbers cells and vertices lexicographically (checked on a sample below)
             dm = PETSc.DMPlex().createBoxMesh(cells, lower=tuple(lower), upper=tuple(upper), simplex=False,
                                               interpolate=True, comm=comm)
@@ -163,7 +163,7 @@ class Mesh:
             self.cell_serial = np.arange(n_local, dtype=np.int64)
             self.vertex_serial = np.arange(vertex_end - vertex_start, dtype=np.int64)
 
-        # owned cells first, then ghosts (STACK.md §2.2, asserted here)
+        # owned cells first, then ghosts (DMPlex numbers them so; asserted here)
         numbering = dm.getCellNumbering().getIndices()
         owned = numbering >= 0
         self.n_owned_cells = int(owned.sum())
@@ -195,7 +195,7 @@ class Mesh:
         sample = np.unique(np.linspace(0, n_local - 1, min(n_local, 64)).astype(np.int64))
         closure = np.array([dm.getTransitiveClosure(c + cell_start)[0][-k:] for c in sample]).reshape(-1, k)
         if not np.array_equal(np.sort(closure - vertex_start, axis=1), np.sort(cell_vertices[sample], axis=1)):
-            # not the numbering assumed: ask DMPlex for every cell (2.8 µs each, STACK.md §4)
+            # not the numbering assumed: ask DMPlex for every cell (slow: one call per cell)
             cell_vertices = np.array([dm.getTransitiveClosure(c)[0][-k:] for c in range(cell_start, cell_end)],
                                      dtype=np.int64).reshape(n_local, k) - vertex_start
         self.cell_vertices = cell_vertices
@@ -221,7 +221,7 @@ class Mesh:
         self.build_seconds = comm.allreduce(wallclock.perf_counter() - start_time, op=MPI.MAX)
 
     def _build_faces_and_geometry(self):
-        """Faces by hashing the cells' faces, then areas, volumes and centroids (STACK.md §4)."""
+        """Faces by hashing the cells' faces, then areas, volumes and centroids."""
         xyz, cv = self.vertex_xyz, self.cell_vertices
         pattern = CELL_FACES[self.cell_type]
         n_local, n_per_cell = len(cv), len(pattern)

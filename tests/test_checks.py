@@ -294,3 +294,14 @@ def test_refusals_on_two_ranks(tmp_path, label, text, args, message):
     line = refused((result.returncode, result.stdout, result.stderr), message)
     assert "[rank" not in line
     assert not (tmp_path / "output").exists()
+
+
+def test_injection_into_a_closed_box_of_fluid_is_warned_about(tmp_path):
+    """Particles injected into a fluid with no outlet displace fluid that cannot leave: the run
+    says so before it starts (the mass source then spreads over the domain)."""
+    text = FLOW + "[[injection]]\nposition = [0.05, 0.05, 0.05]\ninterval = 0.01\nradius = 0.005\ndensity = 2000.0\n"
+    _, err = accepted(run_in_process(make_case(tmp_path, text), "--check"))
+    assert "into a fluid with no outlet" in err
+    with_outlet = text + "[boundary.zmax]\ntype = \"outlet\"\n"
+    _, err = accepted(run_in_process(make_case(tmp_path, with_outlet), "--check"))
+    assert "no outlet" not in err

@@ -1,4 +1,4 @@
-"""Property-based: broken case files and --set values never give a traceback (SPEC §2).
+"""Property-based: broken case files and --set values never give a traceback.
 
 Hypothesis mutates a valid case (a value replaced by anything TOML or not, a line dropped, doubled
 or added) and draws --set KEY=VALUE pairs; pmpm --check must then either accept the case (exit 0)
