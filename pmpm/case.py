@@ -138,9 +138,13 @@ SCHEMA: dict[str, tuple[Key, ...]] = {
         Key("origin", "vec3", None, unit="m", help="cylindrical: origin of the frame"),
         Key("axis", "vec3", (0.0, 0.0, 1.0), help="cylindrical: axis direction"),
         Key("r", "float", 0.0, ">=0", unit="m"),
-        Key("theta", "float", 0.0, unit="rad"),
+        Key("theta", "float", 0.0, unit="rad",
+            help="cylindrical: angle about the axis from the reference direction, the global axis after the "
+                 "axis's largest component in the order x → y → z → x (axis z: from +x towards +y)"),
         Key("z", "float", 0.0, unit="m"),
-        Key("location_velocity", "vec3", (0.0, 0.0, 0.0), unit="m/s", help="moving injection location"),
+        Key("location_velocity", "vec3", (0.0, 0.0, 0.0), unit="m/s",
+            help="moving injection location: the release point, velocity and spin move and turn with it, and "
+                 "a particle leaves with the location's own velocity added"),
         Key("location_angular_velocity", "vec3", (0.0, 0.0, 0.0), unit="rad/s"),
         Key("rotation_center", "vec3", (0.0, 0.0, 0.0), unit="m"),
     ),

@@ -55,7 +55,8 @@ def write(comm, folder: Path, mesh, state) -> None:
         f.attrs.update(time=state.time, step=state.step, dt=state.dt, next_id=state.next_id, removed=state.removed,
                        pressure_iterations=state.pressure_iterations, n_global_cells=mesh.n_global_cells,
                        injector_releases=np.array(state.releases, np.int64),
-                       collisions=json.dumps(state.collision_totals))
+                       collisions=json.dumps(state.collision_totals), fresh_from=state.fresh_from,
+                       injection_counts=json.dumps(state.injection_counts))
         groups = {"particles": {**{name: getattr(state.particles, name) for name in PARTICLE_FIELDS},
                                 "hydro_force": state.hydro_force, "hydro_torque": state.hydro_torque}}
         if state.coupling is not None:
@@ -143,6 +144,8 @@ def restore(comm, data: dict, model, initial, path: Path):
                     removed=int(attrs["removed"]), releases=tuple(int(k) for k in releases),
                     pressure_iterations=int(attrs.get("pressure_iterations", 0)),
                     collision_totals=json.loads(attrs.get("collisions", "{}")), particles=particles,
+                    fresh_from=int(attrs.get("fresh_from", attrs["next_id"])),
+                    injection_counts=json.loads(attrs.get("injection_counts", "{}")),
                     hydro_force=stored["hydro_force"].reshape(-1, 3), hydro_torque=stored["hydro_torque"].reshape(-1, 3),
                     contacts=ContactMemory.from_arrays(data["contacts"]) if "contacts" in data else None)
     if "coupling" in data and initial.coupling is not None:

@@ -20,7 +20,10 @@ REQUIRED_COLUMNS = ("x", "y", "z", "radius", "density")
 
 @dataclass
 class NewParticles:
-    """Particles to add, as arrays (SI): x, v, omega (n,3); radius, density (n,); motion (n,) int8."""
+    """Particles to add, as arrays (SI): x, v, omega (n,3); radius, density (n,); motion (n,) int8;
+    ``time`` (n,) when they are released (s; injections); ``alternatives`` (a, n, 3) other
+    positions to try, in order, where the first cannot take the particle (random injections;
+    NaN where there is none)."""
 
     x: np.ndarray
     v: np.ndarray
@@ -28,6 +31,8 @@ class NewParticles:
     radius: np.ndarray
     density: np.ndarray
     motion: np.ndarray
+    time: np.ndarray | None = None
+    alternatives: np.ndarray | None = None
 
     @classmethod
     def empty(cls) -> "NewParticles":
@@ -38,11 +43,28 @@ class NewParticles:
     def concatenate(cls, parts: list["NewParticles"]) -> "NewParticles":
         if not parts:
             return cls.empty()
-        return cls(*(np.concatenate([getattr(p, f) for p in parts]) for f in
-                     ("x", "v", "omega", "radius", "density", "motion")))
+        arrays = [np.concatenate([getattr(p, f) for p in parts]) for f in
+                  ("x", "v", "omega", "radius", "density", "motion")]
+        times = np.concatenate([p.release_times for p in parts])
+        alternatives = np.concatenate([p.other_positions for p in parts], axis=1)
+        return cls(*arrays, times, alternatives)
+
+    @property
+    def release_times(self) -> np.ndarray:
+        return np.zeros(len(self)) if self.time is None else self.time
+
+    @property
+    def other_positions(self) -> np.ndarray:
+        """(RELEASE_ATTEMPTS − 1, n, 3): the alternatives, NaN where there are none."""
+        if self.alternatives is not None:
+            return self.alternatives
+        return np.full((RELEASE_ATTEMPTS - 1, len(self), 3), np.nan)
 
     def __len__(self):
         return len(self.radius)
+
+
+RELEASE_ATTEMPTS = 20   # positions a random injection tries for each particle before it drops it
 
 
 COLUMN_UNITS = {"x": "m", "y": "m", "z": "m", "vx": "m/s", "vy": "m/s", "vz": "m/s",
@@ -126,6 +148,18 @@ def rotation_matrix(angle_vector: np.ndarray) -> np.ndarray:
     return np.eye(3) + np.sin(angle) * cross + (1 - np.cos(angle)) * cross @ cross
 
 
+def cylinder_frame(axis) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Unit vectors (reference, axis × reference, axis) of a cylindrical injection: θ is measured
+    from the reference direction, the global axis that follows the axis's largest component in the
+    cyclic order x → y → z → x, made perpendicular to the axis (axis z: θ from +x towards +y; axis
+    x: from +y towards +z; axis y: from +z towards +x)."""
+    axis = np.asarray(axis, float) / np.linalg.norm(axis)
+    reference = np.eye(3)[(int(np.argmax(np.abs(axis))) + 1) % 3]
+    reference = reference - (reference @ axis) * axis
+    reference /= np.linalg.norm(reference)
+    return reference, np.cross(axis, reference), axis
+
+
 class Injector:
     """One [[injection]] table: releases ``count`` particles at start, start + interval, ... <= stop.
     Holds the table only; which release is next is part of the run state."""
@@ -147,32 +181,44 @@ class Injector:
         return NewParticles.concatenate(parts), next_release
 
     def release(self, k: int) -> NewParticles:
+        """Release ``k``: its particles where and as the injection sets them free. A moving or
+        rotating location (Table 1) carries the release point, the velocity and the spin with it,
+        and adds its own motion there: a particle leaving a rotating fan blade leaves at the
+        blade's speed."""
         s, n = self.section, self.section.count
         t = self.release_time(k)
+        alternatives = None
         if s.kind == "random":
-            rng = np.random.default_rng((self.seed, self.index, k))
             lower, upper = np.array(s.lower), np.array(s.upper)
-            x = lower + rng.random((n, 3)) * (upper - lower)
+            draws = np.stack([np.random.default_rng((self.seed, self.index, k) + ((attempt,) if attempt else ()))
+                              .random((n, 3)) for attempt in range(RELEASE_ATTEMPTS)])
+            points = lower + draws * (upper - lower)          # (attempts, n, 3); the first as before retries
+            x, alternatives = points[0], points[1:]
             v = np.tile(s.velocity, (n, 1))
         elif s.kind == "cylindrical":
-            axis = np.array(s.axis) / np.linalg.norm(s.axis)
-            e1 = np.cross(axis, [1.0, 0, 0] if abs(axis[0]) < 0.9 else [0, 1.0, 0])
-            e1 /= np.linalg.norm(e1)
-            e2 = np.cross(axis, e1)
-            radial = np.cos(s.theta) * e1 + np.sin(s.theta) * e2
-            tangential = -np.sin(s.theta) * e1 + np.cos(s.theta) * e2
+            reference, normal, axis = cylinder_frame(s.axis)
+            radial = np.cos(s.theta) * reference + np.sin(s.theta) * normal
+            tangential = -np.sin(s.theta) * reference + np.cos(s.theta) * normal
             x = np.tile(np.array(s.origin) + s.r * radial + s.z * axis, (n, 1))
             # velocity = (v_r, v_theta, v_z) in the injection's cylindrical frame
             v = np.tile(s.velocity[0] * radial + s.velocity[1] * tangential + s.velocity[2] * axis, (n, 1))
         else:
             x = np.tile(s.position, (n, 1))
             v = np.tile(s.velocity, (n, 1))
-        # a moving / rotating injection location (Table 1): the release point follows a rigid motion
-        center = np.array(s.rotation_center)
-        x = center + (x - center) @ rotation_matrix(np.array(s.location_angular_velocity) * t).T \
-            + np.array(s.location_velocity) * t
-        return NewParticles(x, v, np.tile(s.angular_velocity, (n, 1)), np.full(n, s.radius),
-                            np.full(n, s.density), np.zeros(n, np.int8))
+        centre, spin = np.array(s.rotation_center), np.array(s.location_angular_velocity)
+        shift, turn = np.array(s.location_velocity) * t, rotation_matrix(spin * t)
+
+        def carried(points):      # the point of the moving location that was at ``points`` at t = 0
+            return centre + (points - centre) @ turn.T + shift
+
+        arm = (x - centre) @ turn.T
+        x = carried(x)
+        v = v @ turn.T + np.array(s.location_velocity) + np.cross(spin, arm)
+        omega = np.tile(turn @ np.array(s.angular_velocity) + spin, (n, 1))
+        if alternatives is not None:
+            alternatives = carried(alternatives)
+        return NewParticles(x, v, omega, np.full(n, s.radius), np.full(n, s.density), np.zeros(n, np.int8),
+                            np.full(n, t), alternatives)
 
 
 def build_injectors(case) -> tuple[Injector, ...]:

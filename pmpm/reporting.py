@@ -114,6 +114,8 @@ def diagnostics(model, state) -> dict:
               "particle_momentum": (particles.mass[:, None] * particles.v).sum(axis=0)}
     if model.contact_settings is not None:
         result["collisions"] = dict(state.collision_totals)
+    if model.injectors:
+        result["injection"] = {"placed": 0, "retried": 0, "dropped": 0, **state.injection_counts}
     if model.flow is not None:
         flow, fluid, mesh = model.flow, state.fluid, model.mesh
         owned = slice(0, mesh.n_owned_cells)

@@ -18,12 +18,13 @@ from mpi4py import MPI
 from . import checkpoint, checks, io, reporting
 from .case import Case, case_path, load_case, suggest
 from .collisions import (CollisionSettings, advance_with_collisions, build_walls, check_initial_particles,
-                         collision_settings, overlaps_existing)
+                         collision_settings)
 from .coupling import CouplingMemory, External, PatchForcing, PenaltyForcing, build_forcing, volume_fraction
 from .errors import CaseError, NumericalError, Stopped
 from .fluid import FlowSolver
 from .forces import field_forces_of_case, gravity_buoyancy
 from .injection import Injector, NewParticles, build_injectors, initial_particles
+from .placement import place_releases
 from .mesh import Mesh
 from .parallel import allreduce_sum, print0
 from .particles import FIXED, ParticleState, accelerate
@@ -91,22 +92,20 @@ def initial_state(model: Model) -> RunState:
                      np.zeros(mesh.n_local_cells) if fluid is not None else None, next_id=0, removed=0,
                      releases=(0,) * len(model.injectors), coupling=CouplingMemory() if fluid is not None else None,
                      walls=walls)
-    return add_particles(model, state, initial_particles(case), validate=True)
+    state = add_particles(model, state, initial_particles(case), validate=True)
+    return replace(state, fresh_from=state.next_id)
 
 
 def add_particles(model: Model, state: RunState, new: NewParticles, validate: bool = False) -> RunState:
-    """Collective. ``state`` with the ``new`` particles that lie in the domain, with fresh ids.
-    ``validate`` (the case's own particles): any outside the domain, or overlapping another particle
-    or a wall, is a CaseError; otherwise (injections) such releases are skipped."""
+    """Collective. ``state`` with the ``new`` particles, with fresh ids. ``validate`` (the case's own
+    particles): any outside the domain, or overlapping another particle or a wall, is a CaseError."""
     if len(new) == 0:
         return state
-    inside = model.mesh.inside_domain(new.x)
     if validate:
-        check_initial_particles(model.case, new, inside, state.walls)
-    keep = inside if validate else inside & ~overlaps_existing(state.particles, new)
-    n = int(keep.sum())
-    particles = state.particles.appended(state.next_id + np.arange(n), new.x[keep], new.v[keep], new.omega[keep],
-                                         new.radius[keep], new.density[keep], new.motion[keep])
+        check_initial_particles(model.case, new, model.mesh.inside_domain(new.x), state.walls)
+    n = len(new)
+    particles = state.particles.appended(state.next_id + np.arange(n), new.x, new.v, new.omega, new.radius,
+                                         new.density, new.motion)
     return replace(state, particles=particles, next_id=state.next_id + n,
                    hydro_force=np.concatenate([state.hydro_force, np.zeros((n, 3))]),
                    hydro_torque=np.concatenate([state.hydro_torque, np.zeros((n, 3))]))
@@ -117,18 +116,13 @@ def add_particles(model: Model, state: RunState, new: NewParticles, validate: bo
 # ----------------------------------------------------------------------------------------------
 def advance(model: Model, state: RunState, dt: float, times: StageTimes) -> RunState:
     """Collective. One time step, stage by stage (ARCHITECTURE.md)."""
-    # 1. inject new particles
-    first_new_id = state.next_id
-    if model.injectors:
-        with times.stage("injection"):
-            state = inject(model, state, state.time + dt)
     # 6, needed by the coupled update: gravity with buoyancy, field forces
     with times.stage("forces"):
         external = external_forces(model, state)
     # 2–5. locate the particles' cells, advance the flow with their forcing, drag and torque
     force, torque = external.force, external.torque
     if model.flow is not None:
-        state = flow_stage(model, state, external, dt, times, injected=state.particles.id >= first_new_id)
+        state = flow_stage(model, state, external, dt, times, injected=state.particles.id >= state.fresh_from)
         force, torque = force + state.hydro_force, torque + state.hydro_torque
     # 7. update V and ω, then move, with collisions resolved in time order
     with times.stage("collisions" if model.contact_settings is not None else "motion"):
@@ -136,19 +130,34 @@ def advance(model: Model, state: RunState, dt: float, times: StageTimes) -> RunS
     # 8. particles that left the domain are removed
     with times.stage("owners"):
         state = remove_outside(model, state)
+    # 1 (of the next step). particles released within this step, where they are at its end
+    state = replace(state, fresh_from=state.next_id)
+    if model.injectors:
+        with times.stage("injection"):
+            state = inject(model, state, state.time + dt)
     state = replace(state, time=state.time + dt, step=state.step + 1, dt=dt)
     check_finite(state.particles, state.step, state.time)
     return state
 
 
 def inject(model: Model, state: RunState, time_end: float) -> RunState:
-    """Collective. The releases of every injection due by ``time_end``."""
+    """Collective. The releases of every injection due by ``time_end``, each particle where its
+    release velocity has taken it by then (released at t, it flies time_end − t), placed clear of
+    the walls and the other particles (``pmpm.placement``; its counts are summed in the state)."""
     parts, releases = [], []
     for injector, next_release in zip(model.injectors, state.releases):
         new, next_release = injector.due(next_release, time_end)
         parts.append(new)
         releases.append(next_release)
-    return add_particles(model, replace(state, releases=tuple(releases)), NewParticles.concatenate(parts))
+    state = replace(state, releases=tuple(releases))
+    new = NewParticles.concatenate(parts)
+    if len(new) == 0:
+        return state
+    flight = new.v * (time_end - new.release_times)[:, None]
+    new = replace(new, x=new.x + flight, alternatives=new.other_positions + flight)
+    placement = place_releases(model.mesh, state.particles, state.walls, new)
+    totals = {key: state.injection_counts.get(key, 0) + value for key, value in placement.counts.items()}
+    return replace(add_particles(model, state, placement.placed), injection_counts=totals)
 
 
 def external_forces(model: Model, state: RunState) -> External:

@@ -28,7 +28,10 @@ class RunState:
     volume_fraction : (n_local,) the particles' volume fraction per cell in the last step, or None
     next_id : the id the next new particle gets (ids are never reused)
     removed : particles that have left the domain
-    releases : per [[injection]], the index of its next release
+    releases : per [[injection]], the index of its next release; injection_counts : the releases'
+        particles placed at once, placed after retries, and dropped, summed over the run
+    fresh_from : particles with this id or larger were released at the end of the last step and
+        have not met the flow yet (they displace their volume of fluid in the next step)
     coupling : the coupling's memory (``pmpm.coupling.CouplingMemory``), or None without [fluid]
     contacts : the contact solver's memory (``pmpm.collisions.ContactMemory``), or None
     walls : the wall triangles as they are now (rigid walls move), or None when no model needs them
@@ -47,6 +50,8 @@ class RunState:
     removed: int
     releases: tuple[int, ...]
     dt: float = 0.0
+    fresh_from: int = 0
+    injection_counts: dict = field(default_factory=dict)
     coupling: CouplingMemory | None = None
     contacts: ContactMemory | None = None
     walls: Walls | None = None
