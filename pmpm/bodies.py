@@ -27,11 +27,13 @@ CYLINDER_FACETS = 48   # sides of the polygon a cylinder's surface is made of, f
 @dataclass(frozen=True)
 class Body:
     """One [[body]] (SI). ``triangles`` (m, 3, 3): its surface at t = 0, wound so that the normals
-    (b − a) × (c − a) point out of it."""
+    (b − a) × (c − a) point out of it; ``tilt`` (3, 3): the rotation a box or cylinder was turned by
+    about its centre at t = 0."""
 
     name: str
     shape: str
     center: np.ndarray
+    tilt: np.ndarray
     size: np.ndarray | None
     axis: np.ndarray
     radius: float | None
@@ -69,10 +71,10 @@ class Body:
     def inside(self, points: np.ndarray, time: float) -> np.ndarray:
         """(k,) bool: the points lie in the body at ``time`` (its surface included)."""
         start = self.to_start(np.asarray(points, float).reshape(-1, 3), time)
+        local = (start - self.center) @ self.tilt      # in the frame of the untilted shape
         if self.shape == "box":
-            return np.all(np.abs(start - self.center) <= 0.5 * self.size * (1 + 1e-12), axis=1)
+            return np.all(np.abs(local) <= 0.5 * self.size * (1 + 1e-12), axis=1)
         if self.shape == "cylinder":
-            local = start - self.center
             along = local @ self.axis
             across = np.linalg.norm(local - along[:, None] * self.axis, axis=1)
             return (np.abs(along) <= 0.5 * self.length * (1 + 1e-12)) & (across <= self.radius * (1 + 1e-12))
@@ -175,13 +177,14 @@ def build_bodies(case) -> tuple[Body, ...]:
         center = np.asarray(section.center, float)
         axis = np.asarray(section.axis, float) / np.linalg.norm(section.axis)
         size = np.asarray(section.size, float) if section.size is not None else None
+        tilt = rotation_matrix(np.asarray(section.tilt, float))
         if section.shape == "box":
-            triangles = box_triangles(center, size)
+            triangles = center + (box_triangles(np.zeros(3), size) @ tilt.T)
         elif section.shape == "cylinder":
-            triangles = cylinder_triangles(center, axis, section.radius, section.length)
+            triangles = center + (cylinder_triangles(np.zeros(3), axis, section.radius, section.length) @ tilt.T)
         else:
             triangles = read_surface(case.resolve(section.file))
-        bodies.append(Body(section.name or f"body {i}", section.shape, center, size, axis, section.radius,
+        bodies.append(Body(section.name or f"body {i}", section.shape, center, tilt, size, axis, section.radius,
                            section.length, np.asarray(section.velocity, float),
                            np.asarray(section.angular_velocity, float), np.asarray(section.rotation_center, float),
                            triangles, section.restitution, section.friction, section.rolling_friction))

@@ -10,7 +10,7 @@ from pmpm.mesh import Mesh
 
 def body(shape, **values) -> Body:
     center = np.array(values.pop("center", (0.1, 0.2, 0.3)))
-    base = dict(name="b", shape=shape, center=center, size=None, axis=np.array([0.0, 0.0, 1.0]), radius=None,
+    base = dict(name="b", shape=shape, center=center, tilt=np.eye(3), size=None, axis=np.array([0.0, 0.0, 1.0]), radius=None,
                 length=None, velocity=np.zeros(3), angular_velocity=np.zeros(3), rotation_center=np.zeros(3))
     base.update(values)
     if shape == "box":
@@ -81,3 +81,17 @@ def test_covered_cells_hold_the_body_volume():
     cells, alpha = cylinder.covered_cells(mesh, 0.5, reference_samples("hex", 4))
     covered = np.sum(alpha * mesh.cell_volume[cells])
     assert covered == pytest.approx(np.pi * 0.02 ** 2 * 0.06, rel=0.01)
+
+
+def test_a_tilted_box_is_turned_about_its_centre():
+    """A 0.4 × 0.1 × 0.1 box tilted by 90° about z lies along y: its surface and its inside agree."""
+    from pmpm.bodies import rotation_matrix
+    tilt = rotation_matrix(np.array([0.0, 0.0, np.pi / 2]))
+    center = np.array([0.1, 0.2, 0.3])
+    triangles = center + box_triangles(np.zeros(3), [0.4, 0.1, 0.1]) @ tilt.T
+    turned = Body("b", "box", center, tilt, np.array([0.4, 0.1, 0.1]), np.array([0.0, 0.0, 1.0]), None, None,
+                  np.zeros(3), np.zeros(3), np.zeros(3), triangles)
+    assert turned.inside(center + np.array([[0.0, 0.15, 0.0]]), 0.0).all()
+    assert not turned.inside(center + np.array([[0.15, 0.0, 0.0]]), 0.0).any()
+    extent = np.ptp(triangles.reshape(-1, 3), axis=0)
+    np.testing.assert_allclose(extent, [0.1, 0.4, 0.1], atol=1e-15)
