@@ -55,9 +55,8 @@ def box(side, height, **coefficients) -> Walls:
 
 def spheres(x, v, radius, density=2500.0) -> ParticleState:
     n = len(x)
-    state = ParticleState.empty()
-    state.append(np.arange(n), x, v, np.zeros((n, 3)), np.full(n, radius), np.full(n, density), np.zeros(n, np.int8))
-    return state
+    return ParticleState.empty().appended(np.arange(n), x, v, np.zeros((n, 3)), np.full(n, radius), np.full(n, density),
+                                          np.zeros(n, np.int8))
 
 
 def pyramid_bed(r, k, layers=3):

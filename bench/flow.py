@@ -7,7 +7,7 @@ Run it without mpirun: it starts ``mpirun -n R`` itself for every (size, ranks, 
 reads one JSON line back from each run. What it measures:
 
 * unit cube, N³ hexahedra, lid ymax at u = (1, 0, 0), other walls fixed, ν = 0.01 (Re 100),
-  dt = 0.5/N (lid CFL 0.5) — the case of ``/work/shared/peers/openfoam_cavity.sh N STEPS``;
+  dt = 0.5/N (lid CFL 0.5) — the case of ``../shared/peers/openfoam_cavity.sh N STEPS``;
 * from rest, 1 untimed step (momentum matrices, first pressure solve), then ``--steps`` timed
   steps; µs per cell per step split into: ``predictor`` (explicit terms of the predictor),
   ``momentum KSP`` (the three CG/Jacobi diffusion solves), ``pressure`` (Rhie–Chow fluxes +
@@ -37,7 +37,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 PYTHON = str(ROOT / ".venv" / "bin" / "python") if (ROOT / ".venv" / "bin" / "python").exists() else sys.executable
-OPENFOAM = Path("/work/shared/peers/openfoam_cavity.sh")
+OPENFOAM = ROOT.parent / "shared" / "peers" / "openfoam_cavity.sh"
 STAGES = ("predictor", "momentum KSP", "pressure", "correction")
 
 
@@ -90,7 +90,7 @@ def worker(args):
     if args.ghia:
         dt, steps = args.ghia_dt, int(round(args.ghia_time / args.ghia_dt))
         start = time.perf_counter()
-        fc.run(solver, dt, steps, state)
+        state = fc.run(solver, dt, steps, state)
         elapsed = time.perf_counter() - start
         deviation = fc.ghia_deviation(solver, state)
         if comm.rank == 0:
@@ -98,7 +98,7 @@ def worker(args):
                                           "t_end": steps * dt, "steps": steps, "seconds": elapsed}), flush=True)
         return
     dt = 0.5 / n
-    solver.step(state, dt, step=0, time=0.0)                 # assembles the momentum matrices
+    state = solver.step(state, dt, step=0, time=0.0)         # assembles the momentum matrices
     clock = {}
     instrument(solver, clock)
     rows, iterations = [], []
@@ -107,14 +107,14 @@ def worker(args):
         clock.update({"pressure KSP": 0.0, "momentum KSP": 0.0})
         comm.Barrier()
         t0 = time.perf_counter()
-        solver.step(state, dt, step=k, time=k * dt)
+        state = solver.step(state, dt, step=k, time=k * dt)
         t1 = time.perf_counter()
         predictor = clock["pressure KSP start"] - t0 - clock["momentum KSP"]
         # the Rhie–Chow fluxes lie between the last momentum solve and the pressure solve
         fluxes = clock["pressure KSP start"] - clock["momentum KSP end"]
         rows.append([predictor - fluxes, clock["momentum KSP"], clock["pressure KSP"] + fluxes,
                      t1 - clock["pressure KSP end"], t1 - t0])
-        iterations.append(solver.last_pressure_iterations)
+        iterations.append(solver.pressure.iterations)
     rows = np.ascontiguousarray(rows, dtype=float)
     comm.Allreduce(MPI.IN_PLACE, rows, op=MPI.MAX)           # the slowest rank's time of each stage
     peak = comm.allreduce(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024)
@@ -147,7 +147,7 @@ def cpu_busy(seconds: float = 2.0) -> float:
 
 def wait_quiet(limit: float, threshold: float = 0.25) -> float:
     """Wait (up to ``limit`` s) until other work keeps fewer than ``threshold`` CPUs busy, so that
-    timings are not taken beside another job (STACK.md §9 R7). Returns the last busy reading."""
+    timings are not taken beside another job. Returns the last busy reading."""
     deadline = time.monotonic() + limit
     while True:
         busy = cpu_busy()
@@ -311,7 +311,7 @@ def main():
                            "--ghia-time", str(args.ghia_time), "--convection", args.convection], timeout=1800)
         print(f"\n2-D cavity {args.ghia_size}×{args.ghia_size} (Re 100, dt {g['dt']}, t = {g['t_end']:g}, {ranks} ranks, "
               f"{g['seconds']:.1f} s): max |u − Ghia 1982| on the vertical centreline = {g['deviation']:.4f} "
-              f"(OpenFOAM 64×64: 0.0034, STACK.md §10)")
+              f"(OpenFOAM 64×64: 0.0034, docs/flow.md)")
 
 
 if __name__ == "__main__":

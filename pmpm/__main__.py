@@ -1,7 +1,8 @@
-"""Command line (SPEC §1): ``python -m pmpm CASE [--output DIR] [--set K=V]... [--check] [--quiet]``.
+"""Command line (README, "The command line"): ``python -m pmpm CASE [--output DIR] [--set K=V]... [--check] [--quiet]``.
 
 Single-dash options go to PETSc's options database (``-pressure_ksp_type cg``). Exit status:
-0 done, 2 bad input (CaseError), 3 numerical failure (NumericalError), 1 anything else.
+0 done, 2 bad input (CaseError), 3 numerical failure (NumericalError), 128 + the signal's number when
+stopped by SIGTERM or SIGINT after writing its state (Stopped: 143, 130), 1 anything else.
 """
 from __future__ import annotations
 
@@ -62,12 +63,15 @@ def parse_arguments(argv):
 
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
+    if argv and argv[0] == "render":  # pictures of a run's output: one process, no MPI or PETSc
+        from .render import main as render_main
+        return render_main(argv[1:])
     ours, petsc_options = split_petsc_options(argv)
     import petsc4py
     petsc4py.init([sys.argv[0]] + petsc_options)
     from mpi4py import MPI
 
-    from .errors import CaseError, NumericalError
+    from .errors import CaseError, NumericalError, Stopped, one_line
 
     comm = MPI.COMM_WORLD
     try:
@@ -77,10 +81,10 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     except SystemExit as exit_request:  # --help
         return int(exit_request.code or 0)
-    except (CaseError, NumericalError) as error:
+    except (CaseError, NumericalError, Stopped) as error:
         if comm.rank == 0:
-            kind = "error" if isinstance(error, CaseError) else "numerical failure"
-            print(f"pmpm: {kind}: {error}", file=sys.stderr, flush=True)
+            kind = {CaseError: "error: ", NumericalError: "numerical failure: ", Stopped: ""}[type(error)]
+            print(f"pmpm: {kind}{one_line(str(error))}", file=sys.stderr, flush=True)
         # Errors are collective (pmpm.parallel.agree). Only rank 0 reports the status, after the
         # others wait for its line: mpirun may drop a rank's output once another exits non-zero.
         comm.Barrier()

@@ -25,21 +25,29 @@ def cross(a, b) -> np.ndarray:
     return out
 
 
-def rotate(vectors, angle_vectors) -> np.ndarray:
-    """Rotate 3-vectors by the rotation vectors θ (Rodrigues): by |θ| radians about θ/|θ|.
+def rotation_matrix(angle_vectors) -> np.ndarray:
+    """Rotation matrices by the rotation vectors θ (Rodrigues): by |θ| radians about θ/|θ|.
 
     Parameters
     ----------
-    vectors : (3,) or (k, 3)
-    angle_vectors : (3,) or (k, 3) rotation vectors (rad), broadcast against ``vectors``;
-        a zero row leaves its vector as it is.
+    angle_vectors : (3,) or (k, 3) rotation vectors (rad); a zero one gives the identity.
 
     Returns
     -------
-    (k, 3) or (3,) the rotated vectors, v cos|θ| + (u × v) sin|θ| + u (u·v)(1 − cos|θ|), u = θ/|θ|.
+    (3, 3) or (k, 3, 3): I + sin|θ| [u]× + (1 − cos|θ|) [u]×², u = θ/|θ|.
     """
-    v, theta = np.asarray(vectors, float), np.asarray(angle_vectors, float)
-    angle = np.sqrt(np.sum(theta * theta, axis=-1, keepdims=True))
-    unit = np.divide(theta, angle, out=np.zeros_like(theta), where=angle > 0)
-    cos, sin = np.cos(angle), np.sin(angle)
-    return v * cos + cross(unit, v) * sin + unit * np.sum(unit * v, axis=-1, keepdims=True) * (1.0 - cos)
+    theta = np.asarray(angle_vectors, float)
+    angle = np.sqrt(np.sum(theta * theta, axis=-1))[..., None, None]
+    unit = np.divide(theta, angle[..., 0], out=np.zeros_like(theta), where=angle[..., 0] > 0)
+    k = np.zeros(theta.shape[:-1] + (3, 3))
+    k[..., 0, 1], k[..., 0, 2], k[..., 1, 2] = -unit[..., 2], unit[..., 1], -unit[..., 0]
+    k[..., 1, 0], k[..., 2, 0], k[..., 2, 1] = unit[..., 2], -unit[..., 1], unit[..., 0]
+    return np.eye(3) + np.sin(angle) * k + (1.0 - np.cos(angle)) * (k @ k)
+
+
+def rotate(vectors, angle_vectors) -> np.ndarray:
+    """3-vectors rotated by the rotation vectors θ (``rotation_matrix``), row by row.
+
+    vectors : (3,) or (k, 3); angle_vectors : (3,) or (k, 3), broadcast against ``vectors``.
+    """
+    return np.einsum("...ij,...j->...i", rotation_matrix(angle_vectors), np.asarray(vectors, float))

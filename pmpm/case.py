@@ -1,4 +1,4 @@
-"""The case file (SPEC §3): ``case.toml`` → one frozen dataclass per section.
+"""The case file: ``case.toml`` → one frozen dataclass per section.
 
 Every key is declared once in ``SCHEMA`` with its type, default, check and unit; the parser, the
 ``--set`` overrides, the error messages and the README's key table all read that one declaration.
@@ -16,6 +16,9 @@ from typing import Any
 from .errors import CaseError
 
 REQUIRED = object()  # marks a key without a default
+# most intervals of [run] end_time that the time loop may count: a step of dt stays 1000 units
+# in the last place of the time, so time keeps advancing (2^52 / 1000)
+MAX_STEPS = 2.0 ** 52 / 1000
 
 
 @dataclass(frozen=True)
@@ -25,7 +28,7 @@ class Key:
     name: str
     kind: str  # float | int | bool | str | vec3 | ivec3 | strings
     default: Any = REQUIRED
-    check: str = ""  # ">0", ">=0", "0..1", or "" (none)
+    check: str = ""  # ">0", ">=0", "0..1", "(0,1)" (both ends excluded), or "" (none)
     choices: tuple = ()
     unit: str = ""
     help: str = ""
@@ -44,7 +47,9 @@ SCHEMA: dict[str, tuple[Key, ...]] = {
         Key("gravity", "vec3", (0.0, 0.0, -9.81), unit="m/s²"),
         Key("seed", "int", 1, ">=0", help="every random choice derives from it"),
         Key("max_cfl", "float", 1.0, ">0", help="warn when the flow's CFL number exceeds it"),
-        Key("adaptive_cfl", "float", 0.0, ">=0", help="target CFL for an adaptive dt (0: fixed dt)"),
+        Key("adaptive_cfl", "float", 0.0, ">=0",
+            help="adaptive time step: each step the largest dt <= [run] dt that keeps the flow's CFL number, "
+                 "and the particles' travel in cells, at this value (0: a fixed dt)"),
         Key("wall_time_limit", "float", 0.0, ">=0", unit="s", help="stop cleanly after this wall time (0: none)"),
     ),
     "mesh": (
@@ -61,7 +66,7 @@ SCHEMA: dict[str, tuple[Key, ...]] = {
         Key("viscosity", "float", check=">0", unit="Pa s", help="dynamic viscosity"),
         Key("convection", "str", "linear_upwind", choices=("upwind", "linear_upwind", "central"),
             help="face interpolation of the convected velocity"),
-        Key("pressure_rtol", "float", 1e-8, ">0", help="relative tolerance of the pressure solve"),
+        Key("pressure_rtol", "float", 1e-8, "(0,1)", help="relative tolerance of the pressure solve"),
         Key("nonorthogonal_correctors", "int", 1, ">=0", help="extra pressure solves on skewed meshes"),
     ),
     "boundary.*": (
@@ -133,9 +138,13 @@ SCHEMA: dict[str, tuple[Key, ...]] = {
         Key("origin", "vec3", None, unit="m", help="cylindrical: origin of the frame"),
         Key("axis", "vec3", (0.0, 0.0, 1.0), help="cylindrical: axis direction"),
         Key("r", "float", 0.0, ">=0", unit="m"),
-        Key("theta", "float", 0.0, unit="rad"),
+        Key("theta", "float", 0.0, unit="rad",
+            help="cylindrical: angle about the axis from the reference direction, the global axis after the "
+                 "axis's largest component in the order x → y → z → x (axis z: from +x towards +y)"),
         Key("z", "float", 0.0, unit="m"),
-        Key("location_velocity", "vec3", (0.0, 0.0, 0.0), unit="m/s", help="moving injection location"),
+        Key("location_velocity", "vec3", (0.0, 0.0, 0.0), unit="m/s",
+            help="moving injection location: the release point, velocity and spin move and turn with it, and "
+                 "a particle leaves with the location's own velocity added"),
         Key("location_angular_velocity", "vec3", (0.0, 0.0, 0.0), unit="rad/s"),
         Key("rotation_center", "vec3", (0.0, 0.0, 0.0), unit="m"),
     ),
@@ -218,7 +227,8 @@ def case_path(argument: str) -> Path:
 def load_case(path: Path, overrides: list[str] = ()) -> Case:
     """Read, override (``--set KEY=VALUE``) and validate a case file."""
     try:
-        raw = tomllib.loads(path.read_text())
+        # utf-8-sig: a byte-order mark, as some Windows editors write one, is not part of the TOML
+        raw = tomllib.loads(path.read_text(encoding="utf-8-sig"))
     except tomllib.TOMLDecodeError as error:
         raise CaseError(f"{path.name}: not valid TOML: {error}") from None
     except (OSError, UnicodeDecodeError) as error:
@@ -250,6 +260,9 @@ def apply_override(raw: dict, text: str, filename: str) -> None:
     if keys is None or parts[-1] not in {k.name for k in keys}:
         known = [k.name for k in keys] if keys else []
         raise CaseError(f"--set {dotted}: no such key{suggest(parts[-1], known)}")
+    # a bad value is the command line's, not the case file's: say so
+    key = next(k for k in keys if k.name == parts[-1])
+    check_value(value, key, ".".join(parts[:-1]), filename, where=f"--set {dotted}={value_text.strip()}")
     node = raw
     for part in parts[:-1]:
         node = node.setdefault(part, {})
@@ -369,14 +382,16 @@ def describe(key: Key) -> str:
     return f" ({what}{unit})"
 
 
-def check_value(value, key: Key, label: str, filename: str):
-    where = f"{filename}: [{label}] {key.name} = {format_value(value)}"
+def check_value(value, key: Key, label: str, filename: str, where: str = ""):
+    """The typed value of one key, or CaseError naming ``where`` (default: the file, table and key)."""
+    where = where or f"{filename}: [{label}] {key.name} = {format_value(value)}"
     kind = key.kind
     ok = True
     if kind == "float":
         ok = isinstance(value, (int, float)) and not isinstance(value, bool)
         value = float(value) if ok else value
-        ok = ok and math.isfinite(value) or (ok and value == math.inf)
+        # inf only where it is the default, i.e. means "never" ([[injection]] stop)
+        ok = ok and (math.isfinite(value) or (value == math.inf and key.default == math.inf))
     elif kind == "int":
         ok = isinstance(value, int) and not isinstance(value, bool)
     elif kind == "bool":
@@ -394,7 +409,10 @@ def check_value(value, key: Key, label: str, filename: str):
         ok = isinstance(value, list) and all(isinstance(v, str) for v in value)
         value = tuple(value) if ok else value
     if not ok:
-        raise CaseError(f"{where}: must be {describe(key).strip()[1:-1]}")
+        what = describe(key).strip()[1:-1]
+        if isinstance(value, float) and math.isinf(value):
+            what = what.replace("a number", "a finite number")
+        raise CaseError(f"{where}: must be {what}")
     if key.choices and value not in key.choices:
         raise CaseError(f"{where}: must be one of {', '.join(map(repr, key.choices))}"
                         f"{suggest(value, key.choices) if isinstance(value, str) else ''}")
@@ -406,6 +424,8 @@ def check_value(value, key: Key, label: str, filename: str):
         raise CaseError(f"{where}: must be >= 0{unit}")
     if key.check == "0..1" and not all(0 <= v <= 1 for v in numbers):
         raise CaseError(f"{where}: must be between 0 and 1")
+    if key.check == "(0,1)" and not all(0 < v < 1 for v in numbers):
+        raise CaseError(f"{where}: must be > 0 and < 1")
     return value
 
 
@@ -425,9 +445,13 @@ def check_consistency(case: Case) -> None:
     run = case.run
     if run.output_every is None:
         object.__setattr__(case.run, "values", {**run.values, "output_every": run.end_time / 20})
-    # declared so that the reference lists them, refused until they work (no silent no-ops)
-    if run.adaptive_cfl:
-        raise CaseError(f"{name}: [run] adaptive_cfl: an adaptive time step is not available yet; set a fixed dt")
+    # the loop adds dt to the time: far below the resolution of a double at end_time, time stalls
+    for key in ("dt", "output_every", "checkpoint_every"):
+        every = getattr(run, key)
+        if every is not None and not run.end_time / every <= MAX_STEPS:
+            raise CaseError(f"{name}: [run] {key} = {every:g} s is too small for end_time = {run.end_time:g} s: "
+                            f"{run.end_time / every:.3g} intervals, more than the {MAX_STEPS:.2g} that "
+                            f"double-precision time can count; raise {key} or lower end_time")
     if case.box is not None:
         lower, upper = case.box.lower, case.box.upper
         if not all(u > l for l, u in zip(lower, upper)):
@@ -440,8 +464,14 @@ def check_consistency(case: Case) -> None:
     for i, inj in enumerate(case.injections):
         if inj.stop < inj.start:
             raise CaseError(f"{name}: [[injection]] #{i}: stop = {inj.stop} must be >= start = {inj.start}")
+        if not (min(inj.stop, run.end_time) - inj.start) / inj.interval <= MAX_STEPS:
+            raise CaseError(f"{name}: [[injection]] #{i}: interval = {inj.interval:g} s is too small: more than "
+                            f"{MAX_STEPS:.2g} releases before end_time; raise interval")
         if inj.kind == "random" and (inj.lower is None or inj.upper is None):
             raise CaseError(f"{name}: [[injection]] #{i}: kind = \"random\" needs lower = [...] and upper = [...]")
+        if inj.kind == "random" and not all(l <= u for l, u in zip(inj.lower, inj.upper)):
+            raise CaseError(f"{name}: [[injection]] #{i}: lower = {format_value(inj.lower)} must not exceed upper = "
+                            f"{format_value(inj.upper)} in any direction (the box of release points)")
         if inj.kind == "cylindrical" and inj.origin is None:
             raise CaseError(f"{name}: [[injection]] #{i}: kind = \"cylindrical\" needs origin = [...]")
     if case.deposition is not None:

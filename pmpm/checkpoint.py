@@ -1,83 +1,105 @@
-"""checkpoint.h5: the whole state of a run, written collectively and replaced atomically.
+"""checkpoint.h5: the whole run state, written collectively and replaced atomically.
 
 Written to ``checkpoint.h5.tmp`` and renamed over ``checkpoint.h5`` only when complete, so a run
-killed at any moment leaves the previous checkpoint whole (SPEC §4). Everything is stored in an
-order independent of the rank count, so a run may restart on another number of ranks:
+killed at any moment leaves the previous checkpoint whole. Everything is stored in an order
+independent of the rank count, so a run may restart on another number of ranks:
 
-- attributes: time, step, next particle id, particles removed, n_global_cells, injector releases;
-- ``particles/*``: the replicated particle arrays (and their last hydrodynamic force and torque,
-  and the coupling's fluid momentum under each particle at the end of the last step);
-- ``fluid/velocity``, ``fluid/pressure``: cells in the serial order of the undistributed mesh;
+- attributes: time, step, next particle id, particles removed, pressure iterations, n_global_cells,
+  each injection's next release;
+- ``particles/*``: the (replicated) particle arrays and their last hydrodynamic force and torque;
+- ``coupling/*``, ``contacts/*``: the coupling's and the contact solver's memory, where the run has one;
+- ``walls/*``: the wall triangles as they are now (rigid walls move); ``collisions``: the run's counts;
+- ``fluid/velocity``, ``fluid/pressure``, ``fluid/volume_fraction``: cells in the serial order of
+  the undistributed mesh;
 - ``fluid/face_key`` (the 3 smallest serial vertex numbers of a face), ``fluid/face_from`` (the
-  serial cell the flux leaves) and ``fluid/face_flux``: each face once, in any order.
+  serial cell the flux leaves), ``fluid/face_flux``: every rank's faces, in any order, a face
+  between two ranks once from each side; ``fluid/face_canonical`` marks one copy of each face.
 """
 from __future__ import annotations
 
+import json
 import os
+from dataclasses import fields, replace
 from pathlib import Path
 
 import numpy as np
 
+from .collisions import ContactMemory
+from .coupling import CouplingMemory
 from .errors import CaseError
+from .fluid import FluidState
 from .io import SerialOrder, h5py
 from .mesh import match_rows
 from .parallel import agree, exscan_offset
+from .particles import ParticleState
 
-PARTICLE_FIELDS = ("id", "x", "v", "omega", "radius", "density", "motion", "deposited")
+PARTICLE_FIELDS = tuple(f.name for f in fields(ParticleState))
+WALL_FIELDS = ("a", "b", "c", "normal", "center")   # what moves of a wall triangle
 
 
 def face_identity(mesh):
-    """The faces this rank writes (each face once over all ranks), their keys and 'from' cells."""
+    """Each local face's key (its 3 smallest serial vertex numbers, (n_faces, 3)) and the serial
+    number of the cell its flux leaves (n_faces,); and which faces this rank writes as the one
+    copy of a face that two ranks hold (the copy of the rank with the lower global cell number)."""
     owner, neighbour = mesh.face_cells[:, 0], mesh.face_cells[:, 1]
     gid = mesh.cell_gid
-    mine = (neighbour < 0) | (gid[owner] < np.where(neighbour >= 0, gid[np.maximum(neighbour, 0)], -1))
+    canonical = (neighbour < 0) | (gid[owner] < np.where(neighbour >= 0, gid[np.maximum(neighbour, 0)], -1))
     keys = np.sort(mesh.vertex_serial[mesh.face_vertices], axis=1)[:, :3]
-    return mine, keys, mesh.cell_serial[owner]
+    return keys, mesh.cell_serial[owner], canonical
 
 
-def write(comm, folder: Path, mesh, simulation) -> None:
-    """Collective. Write the simulation's state to ``folder/checkpoint.h5`` atomically."""
+def write(comm, folder: Path, mesh, state) -> None:
+    """Collective. Write the run state (``pmpm.state.RunState``) to ``folder/checkpoint.h5`` atomically."""
     temporary, final = folder / "checkpoint.h5.tmp", folder / "checkpoint.h5"
-    state = simulation.particles
     with h5py.File(temporary, "w", driver="mpio", comm=comm) as f:
-        f.attrs.update(time=simulation.time, step=simulation.step, next_id=simulation.next_id(),
-                       removed=simulation.removed, n_global_cells=mesh.n_global_cells,
-                       injector_releases=np.array([i.next_release for i in simulation.injectors], np.int64))
-        group = f.create_group("particles")
-        arrays = {name: getattr(state, name) for name in PARTICLE_FIELDS}
-        arrays.update(hydro_force=simulation.hydro_force, hydro_torque=simulation.hydro_torque)
-        coupling = getattr(simulation, "coupling", None)
-        if coupling is not None and coupling.internal_end is not None:
-            # the penalty's fluid momentum under each particle at the end of the last step (by id)
-            ids, fluid_under, centres = coupling.internal_end
-            arrays.update(coupling_ids=ids, coupling_fluid_under=fluid_under, coupling_centres=centres)
-        for name, values in arrays.items():
-            values = np.asarray(values)
-            dset = group.create_dataset(name, values.shape, dtype=values.dtype)
-            if comm.rank == 0 and values.size:
-                dset[...] = values
-        if simulation.fluid_state is not None:
-            fluid = simulation.fluid_state
-            owned = slice(0, mesh.n_owned_cells)
-            cells = SerialOrder.build(comm, mesh.cell_serial[owned], mesh.n_global_cells)
-            for name, values in (("velocity", fluid.u[owned]), ("pressure", fluid.p[owned])):
-                slab = cells.slab(np.ascontiguousarray(values))
-                dset = f.create_dataset(f"fluid/{name}", (mesh.n_global_cells,) + values.shape[1:], dtype=float)
-                with dset.collective:
-                    dset[cells.start:cells.stop] = slab
-            mine, keys, from_cell = face_identity(mesh)
-            count = int(mine.sum())
-            start = exscan_offset(comm, count)
-            total = comm.allreduce(count)
-            for name, values in (("face_key", keys[mine]), ("face_from", from_cell[mine]),
-                                 ("face_flux", fluid.flux[mine])):
-                dset = f.create_dataset(f"fluid/{name}", (total,) + values.shape[1:], dtype=values.dtype)
-                with dset.collective:
-                    dset[start:start + count] = values
+        f.attrs.update(time=state.time, step=state.step, dt=state.dt, next_id=state.next_id, removed=state.removed,
+                       pressure_iterations=state.pressure_iterations, n_global_cells=mesh.n_global_cells,
+                       injector_releases=np.array(state.releases, np.int64),
+                       collisions=json.dumps(state.collision_totals), fresh_from=state.fresh_from,
+                       injection_counts=json.dumps(state.injection_counts))
+        groups = {"particles": {**{name: getattr(state.particles, name) for name in PARTICLE_FIELDS},
+                                "hydro_force": state.hydro_force, "hydro_torque": state.hydro_torque}}
+        if state.coupling is not None:
+            groups["coupling"] = state.coupling.to_arrays()
+        if state.contacts is not None:
+            groups["contacts"] = state.contacts.to_arrays()
+        if state.walls is not None:
+            groups["walls"] = {name: getattr(state.walls, name) for name in WALL_FIELDS}
+        for group, arrays in groups.items():   # replicated on every rank: rank 0 writes them
+            for name, values in arrays.items():
+                values = np.asarray(values)
+                dset = f.create_dataset(f"{group}/{name}", values.shape, dtype=values.dtype)
+                if comm.rank == 0 and values.size:
+                    dset[...] = values
+        if state.fluid is not None:
+            write_fluid(comm, f, mesh, state)
     comm.Barrier()
     if comm.rank == 0:
         os.replace(temporary, final)
     comm.Barrier()
+
+
+def write_fluid(comm, f, mesh, state) -> None:
+    """Collective. The cell fields in serial order, and each face's flux once."""
+    owned = slice(0, mesh.n_owned_cells)
+    cells = SerialOrder.build(comm, mesh.cell_serial[owned], mesh.n_global_cells)
+    for name, values in (("velocity", state.fluid.u[owned]), ("pressure", state.fluid.p[owned]),
+                         ("volume_fraction", state.volume_fraction[owned])):
+        slab = cells.slab(np.ascontiguousarray(values))
+        dset = f.create_dataset(f"fluid/{name}", (mesh.n_global_cells,) + values.shape[1:], dtype=float)
+        with dset.collective:
+            dset[cells.start:cells.stop] = slab
+    # every rank's faces, a face between two ranks once from each: the fluxes the two ranks hold
+    # differ by round-off, and a restart on the same ranks continues bit for bit with each its own
+    keys, from_cell, canonical = face_identity(mesh)
+    count = len(keys)
+    start = exscan_offset(comm, count)
+    total = comm.allreduce(count)
+    for name, values in (("face_key", keys), ("face_from", from_cell), ("face_canonical", canonical),
+                         ("face_flux", state.fluid.flux)):
+        dset = f.create_dataset(f"fluid/{name}", (total,) + values.shape[1:], dtype=values.dtype)
+        with dset.collective:
+            dset[start:start + count] = values
 
 
 def read(comm, path: Path) -> dict:
@@ -85,9 +107,12 @@ def read(comm, path: Path) -> dict:
     error, data = None, None
     try:
         with h5py.File(path, "r") as f:
-            data = {"attrs": dict(f.attrs), "particles": {k: f[f"particles/{k}"][...] for k in f["particles"]}}
-            if "fluid" in f:
-                data["fluid"] = {k: f[f"fluid/{k}"][...] for k in f["fluid"]}
+            data = {"attrs": dict(f.attrs)}
+            for group in ("particles", "coupling", "contacts", "walls", "fluid"):
+                if group in f:
+                    data[group] = {k: f[f"{group}/{k}"][...] for k in f[group]}
+            if "particles" not in data:
+                raise KeyError("no particles group")
     except FileNotFoundError:
         error = CaseError(f"--restart {path}: no such checkpoint file")
     except (OSError, KeyError) as exc:
@@ -96,43 +121,57 @@ def read(comm, path: Path) -> dict:
     return data
 
 
-def restore(comm, data: dict, mesh, simulation, path: Path) -> None:
-    """Collective. Put a checkpoint's state into a freshly built simulation of the same case."""
-    attrs = data["attrs"]
+def restore(comm, data: dict, model, initial, path: Path):
+    """Collective. The run state of a checkpoint, for ``model`` (built from the same case), whose
+    initial state ``initial`` gives what the checkpoint leaves out (a case's unmoving walls)."""
+    attrs, mesh = data["attrs"], model.mesh
     if int(attrs["n_global_cells"]) != mesh.n_global_cells:
         raise CaseError(f"--restart {path}: the checkpoint is of a mesh of {int(attrs['n_global_cells'])} cells, "
                         f"this case's mesh has {mesh.n_global_cells}")
-    if ("fluid" in data) != (simulation.fluid_state is not None):
+    if ("fluid" in data) != (initial.fluid is not None):
         raise CaseError(f"--restart {path}: the checkpoint {'has' if 'fluid' in data else 'has no'} flow, "
-                        f"this case {'has' if simulation.fluid_state is not None else 'has no'} [fluid]")
+                        f"this case {'has' if initial.fluid is not None else 'has no'} [fluid]")
     releases = np.atleast_1d(attrs["injector_releases"])
-    if len(releases) != len(simulation.injectors):
+    if len(releases) != len(model.injectors):
         raise CaseError(f"--restart {path}: the checkpoint has {len(releases)} injection(s), this case "
-                        f"{len(simulation.injectors)}")
-    simulation.time, simulation.step = float(attrs["time"]), int(attrs["step"])
-    simulation.removed = int(attrs["removed"])
-    simulation._first_free_id = int(attrs["next_id"])
-    if simulation.fluid_state is not None:  # the flow has carried every particle of the checkpoint
-        simulation.flow_knows_id = simulation._first_free_id - 1
-    for injector, k in zip(simulation.injectors, releases):
-        injector.next_release = int(k)
-    particles = data["particles"]
-    state = simulation.particles
-    for name in PARTICLE_FIELDS:
-        setattr(state, name, particles[name].astype(getattr(state, name).dtype).reshape((-1,) + getattr(state, name).shape[1:]))
-    simulation.hydro_force = particles["hydro_force"].reshape(-1, 3)
-    simulation.hydro_torque = particles["hydro_torque"].reshape(-1, 3)
-    if "coupling_ids" in particles and simulation.coupling is not None:
-        simulation.coupling.internal_end = (particles["coupling_ids"].astype(np.int64),
-                                            particles["coupling_fluid_under"].reshape(-1, 6),
-                                            particles["coupling_centres"].reshape(-1, 3))
-    if simulation.fluid_state is not None:
-        fluid, stored = simulation.fluid_state, data["fluid"]
-        fluid.u[:] = stored["velocity"][mesh.cell_serial]
-        fluid.p[:] = stored["pressure"][mesh.cell_serial]
-        _, keys, from_cell = face_identity(mesh)
-        where = match_rows(keys, stored["face_key"])
-        agree(comm, CaseError(f"--restart {path}: the checkpoint's faces do not match this case's mesh")
-              if (where < 0).any() else None)
-        sign = np.where(stored["face_from"][where] == from_cell, 1.0, -1.0)
-        fluid.flux[:] = sign * stored["face_flux"][where]
+                        f"{len(model.injectors)}")
+    stored = data["particles"]
+    template = ParticleState.empty()
+    particles = ParticleState(**{name: stored[name].astype(getattr(template, name).dtype)
+                                 .reshape((-1,) + getattr(template, name).shape[1:]) for name in PARTICLE_FIELDS})
+    state = replace(initial, time=float(attrs["time"]), step=int(attrs["step"]), dt=float(attrs.get("dt", 0.0)),
+                    next_id=int(attrs["next_id"]),
+                    removed=int(attrs["removed"]), releases=tuple(int(k) for k in releases),
+                    pressure_iterations=int(attrs.get("pressure_iterations", 0)),
+                    collision_totals=json.loads(attrs.get("collisions", "{}")), particles=particles,
+                    fresh_from=int(attrs.get("fresh_from", attrs["next_id"])),
+                    injection_counts=json.loads(attrs.get("injection_counts", "{}")),
+                    hydro_force=stored["hydro_force"].reshape(-1, 3), hydro_torque=stored["hydro_torque"].reshape(-1, 3),
+                    contacts=ContactMemory.from_arrays(data["contacts"]) if "contacts" in data else None)
+    if "coupling" in data and initial.coupling is not None:
+        state = replace(state, coupling=CouplingMemory.from_arrays(data["coupling"]))
+    if "walls" in data and initial.walls is not None and len(data["walls"]["a"]) == len(initial.walls):
+        state = replace(state, walls=replace(initial.walls, **{name: data["walls"][name].reshape(-1, 3)
+                                                               for name in WALL_FIELDS}))
+    if "fluid" in data:
+        state = replace(state, **restored_fluid(comm, data["fluid"], mesh, path))
+    return state
+
+
+def restored_fluid(comm, stored: dict, mesh, path: Path) -> dict:
+    """Collective. The flow and the volume fraction of a checkpoint on this rank's cells. A face
+    takes the flux stored with its own orientation (this rank's copy, on the same ranks), else the
+    one copy of it, turned where it was stored from the other side."""
+    keys, from_cell, _ = face_identity(mesh)
+    flux = np.zeros(len(keys))
+    same = match_rows(np.column_stack([keys, from_cell]), np.column_stack([stored["face_key"], stored["face_from"]]))
+    flux[same >= 0] = stored["face_flux"][same[same >= 0]]
+    rest = np.flatnonzero(same < 0)
+    canonical = np.flatnonzero(stored["face_canonical"])
+    where = match_rows(keys[rest], stored["face_key"][canonical])
+    agree(comm, CaseError(f"--restart {path}: the checkpoint's faces do not match this case's mesh")
+          if (where < 0).any() else None)
+    where = canonical[where]
+    flux[rest] = np.where(stored["face_from"][where] == from_cell[rest], 1.0, -1.0) * stored["face_flux"][where]
+    fluid = FluidState(stored["velocity"][mesh.cell_serial].reshape(-1, 3), stored["pressure"][mesh.cell_serial], flux)
+    return {"fluid": fluid, "volume_fraction": stored["volume_fraction"][mesh.cell_serial]}

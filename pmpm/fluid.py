@@ -1,25 +1,27 @@
 """Incompressible Navier–Stokes on the distributed mesh: an incremental projection method.
 
-Cell-centred finite volumes, collocated u and p. One step of size dt:
+Cell-centred finite volumes, collocated u and p. One step of size dt, in four stages that the
+time loop calls in turn (``pmpm.simulation``; particles add implicit terms to stage 2):
 
-1. predictor: (V/dt − ν L) u* = V/dt uⁿ − C(uⁿ) − V ∇pⁿ/ρ + S, with the convection C explicit
-   (face flux Fⁿ × upwind, central or linear-upwind face value) and the diffusion ν L implicit
-   (one KSP solve per component, matrices assembled once per dt);
-2. face flux with a Rhie–Chow-type pressure term, which is what keeps the pressure free of
-   checkerboarding: F* = (ū* + dt/ρ ∇̄pⁿ)·S − dt/ρ (a_f (pⁿ_N − pⁿ_P) + k_f·∇̄pⁿ);
-3. projection: the pressure correction p' from Σ a_f (p'_P − p'_N) = −ρ/dt Σ F* (PETSc KSP,
-   ``pmpm.pressure``), with explicit non-orthogonal correctors k_f·∇̄p' on skewed meshes;
-4. correction: F = F* − dt/ρ (a_f Δp' + k_f·∇̄p'), u = u* − dt/ρ ∇p', p = pⁿ + p'.
+1. ``predictor``: the explicit right-hand side V/dt uⁿ − C(uⁿ) − V ∇pⁿ/ρ, the convection C from
+   the face flux Fⁿ and an upwind, central or linear-upwind face value;
+2. ``solve_momentum``: (V/dt − ν L + D) u* = right-hand side, the diffusion ν L implicit (one KSP
+   solve per component, matrices assembled once per dt), D an extra diagonal (the particles' penalty);
+3. ``project``: face flux with a Rhie–Chow-type pressure term, which keeps the pressure free of
+   checkerboarding, F* = (ū* + dt/ρ ∇̄pⁿ)·S − dt/ρ (a_f (pⁿ_N − pⁿ_P) + k_f·∇̄pⁿ); then the pressure
+   correction p' from Σ a_f (p'_P − p'_N) = −ρ/dt Σ F* (PETSc KSP, ``pmpm.pressure``), with
+   explicit non-orthogonal correctors k_f·∇̄p' on skewed meshes;
+4. ``correct``: F = F* − dt/ρ (a_f Δp' + k_f·∇̄p'), u = u* − dt/ρ ∇p', p = pⁿ + p'.
 
-Here a_f = |S|²/(d·S) (over-relaxed split, k_f = S − a_f d), bars are face interpolations, and
-S is an explicit momentum source (the particles, ``pmpm.coupling``). The face fluxes F are
-divergence-free to the KSP tolerance and convect the next step.
+Here a_f = |S|²/(d·S) (over-relaxed split, k_f = S − a_f d) and bars are face interpolations.
+The face fluxes F are divergence-free to the KSP tolerance and convect the next step. Each stage
+returns new arrays: the state it was given stays as it was.
 
 Gravity: ``p`` is the pressure less the hydrostatic part ρ g·x, so gravity does not appear in the
-fluid equations and still fluid stays still; particles feel buoyancy explicitly (DESIGN.md).
+fluid equations and still fluid stays still; particles feel buoyancy explicitly.
 
-Boundaries (SPEC §3): wall (no-slip, moving surface V + Ω × (x − c)), inlet (velocity),
-outlet (fixed pressure, zero-gradient velocity), symmetry (no normal flux, free slip).
+Boundaries: wall (no-slip, moving surface V + Ω × (x − c)), inlet (velocity), outlet (fixed
+pressure, zero-gradient velocity), symmetry (no normal flux, free slip).
 """
 from __future__ import annotations
 
@@ -32,20 +34,37 @@ from mpi4py import MPI
 from .errors import NumericalError
 from .pressure import CellKSP, PressureSolver, assemble_cell_matrix
 
-
-
-
 WALL, INLET, OUTLET, SYMMETRY = 0, 1, 2, 3
 BOUNDARY_CODES = {"wall": WALL, "inlet": INLET, "outlet": OUTLET, "symmetry": SYMMETRY}
 
 
-@dataclass
+@dataclass(frozen=True)
 class FluidState:
-    """The flow: cell velocity (n_local, 3), pressure less hydrostatics (n_local,), face flux (n_faces,)."""
+    """The flow: cell velocity (n_local, 3) m/s, pressure less hydrostatics (n_local,) Pa, face
+    volume flux (n_faces,) m³/s. Ghost rows are current."""
 
     u: np.ndarray
     p: np.ndarray
     flux: np.ndarray
+
+
+@dataclass(frozen=True)
+class Predictor:
+    """Stage 1's result: the momentum right-hand side (n_local, 3), m⁴/s² (volume × velocity / time),
+    and the pressure gradient ∇pⁿ (n_local, 3), Pa/m, that the projection reuses."""
+
+    rhs: np.ndarray
+    grad_p: np.ndarray
+
+
+@dataclass(frozen=True)
+class Projection:
+    """Stage 3's result: the face fluxes before the correction (n_faces,), the pressure correction
+    p' (n_local,), and the pressure KSP iterations it took."""
+
+    flux: np.ndarray
+    correction: np.ndarray
+    iterations: int
 
 
 class FlowSolver:
@@ -72,10 +91,8 @@ class FlowSolver:
         dirichlet = np.zeros(len(coefficient), bool)
         dirichlet[self.n_interior:] = self.kind == OUTLET
         self.pressure = PressureSolver(mesh, coefficient, dirichlet, rtol=fluid.pressure_rtol)
-        self._momentum_dt = None
-        self.momentum = []
-        self._penalized = False      # a particle penalty is on the momentum matrices' diagonals
-        self.last_pressure_iterations = 0
+        self._momentum = {}          # dt → its momentum KSPs, the latest used last
+        self._atol_dt = None
 
     # -- set-up -------------------------------------------------------------------------------------
     def _geometry(self):
@@ -104,6 +121,7 @@ class FlowSolver:
         cols = np.concatenate([np.arange(n_int), np.arange(n_int), np.arange(n_int, n_faces)])
         vals = np.concatenate([np.ones(n_int), -np.ones(n_int), np.ones(n_faces - n_int)])
         self.D = scipy.sparse.csr_matrix((vals, (rows, cols)), shape=(self.n_local, n_faces))
+        self.D_abs = abs(self.D)[:self.n_owned]                   # Σ over an owned cell's faces of |·|
         # interior face interpolation as a matrix: one sparse product is 3× faster than two gathers
         faces = np.arange(n_int)
         self.I = scipy.sparse.csr_matrix((np.concatenate([self.w, 1 - self.w]),
@@ -146,20 +164,41 @@ class FlowSolver:
         flux[self.n_interior:] = self.flux_fixed
         return FluidState(np.zeros((self.n_local, 3)), np.zeros(self.n_local), flux)
 
-    def _momentum_solvers(self, dt: float):
-        """The implicit-diffusion matrices (V/dt − ν L) of the three components, for this dt."""
-        if self._momentum_dt is not None and abs(self._momentum_dt - dt) <= 1e-12 * dt:
-            return self.momentum
-        for solver in self.momentum:
-            solver.destroy()
+    def _momentum_solvers(self, dt: float) -> list:
+        """The implicit-diffusion KSPs (V/dt − ν L) of the three components for this dt, with the
+        pressure's atol for it. The solvers of the two latest dts are kept: an adaptive step goes to
+        a shorter one to land on an output time and back."""
+        found = [d for d in self._momentum if abs(d - dt) <= 1e-12 * dt]
+        if found:
+            self._momentum[found[0]] = self._momentum.pop(found[0])     # the latest used is last
+        else:
+            if len(self._momentum) == 2:
+                oldest = next(iter(self._momentum))
+                for solver in {id(s): s for s in self._momentum.pop(oldest)}.values():
+                    solver.destroy()
+            self._momentum[float(dt)] = self._assemble_momentum(dt)
+        if self._atol_dt != dt:
+            # a flux imbalance of 1e-15 m/s over each cell's faces: at a steady state the pressure's
+            # right-hand side is round-off, and CG would break down on that noise
+            area = self.volume[:self.n_owned] ** (2 / 3)
+            self.pressure.set_atol(1e-15 * self.rho / dt * float(np.sqrt(self.comm.allreduce(np.sum(area ** 2)))))
+            self._atol_dt = dt
+        return self.momentum
+
+    @property
+    def momentum(self) -> list:
+        """The momentum KSPs of the latest dt (one per velocity component, possibly one shared)."""
+        return list(self._momentum.values())[-1] if self._momentum else []
+
+    def _assemble_momentum(self, dt: float) -> list:
         nu = self.nu
         coefficient = np.concatenate([nu * self.a, np.zeros(len(self.a_b))])
-        self.momentum = []
+        solvers = []
         # the three matrices differ only on symmetry faces: without them, one matrix and KSP serve all
         symmetry = self.comm.allreduce(bool((self.kind == SYMMETRY).any()), op=MPI.LOR)
         for component in range(3):
             if component and not symmetry:
-                self.momentum.append(self.momentum[0])
+                solvers.append(solvers[0])
                 continue
             boundary = nu * self.a_b * np.where(self.dirichlet_u, 1.0, 0.0)
             boundary += nu * self.a_b * np.where(self.kind == SYMMETRY, self.normal_b[:, component] ** 2, 0.0)
@@ -168,30 +207,8 @@ class FlowSolver:
             # Jacobi: the matrix is diagonally dominant, and the result does not depend on the partition
             # atol: a velocity error of 1e-15 m/s per cell, so that fluid at rest converges at once
             atol = 1e-15 * float(np.sqrt(self.comm.allreduce(np.sum((self.volume[:self.n_owned] / dt) ** 2))))
-            self.momentum.append(CellKSP(self.mesh, matrix, "momentum_", "cg", "jacobi", 1e-8, "momentum",
-                                         atol=atol))
-        # the pressure's atol, likewise: a flux imbalance of 1e-15 m/s over each cell's faces. At a
-        # steady state the right-hand side is round-off, and CG would break down on that noise
-        area = self.volume[:self.n_owned] ** (2 / 3)
-        self.pressure.set_atol(1e-15 * self.rho / dt * float(np.sqrt(self.comm.allreduce(np.sum(area ** 2)))))
-        self._momentum_dt = dt
-        self._penalized = False
-        return self.momentum
-
-    def _penalize(self, solvers, rhs, penalty):
-        """The right-hand side of one momentum solve, with the particles' implicit penalty on the
-        matrices' diagonals and in the right-hand side (or, without it, the matrices restored)."""
-        if penalty is None and not self._penalized:
-            return rhs
-        diagonal, target = penalty() if penalty is not None else (np.zeros(self.n_owned), None)
-        for solver in {id(s): s for s in solvers}.values():   # the components may share one matrix
-            solver.add_to_diagonal(diagonal)
-        self._penalized = penalty is not None
-        if target is None:
-            return rhs
-        rhs = rhs.copy()
-        rhs[:self.n_owned] += target
-        return rhs
+            solvers.append(CellKSP(self.mesh, matrix, "momentum_", "cg", "jacobi", 1e-8, "momentum", atol=atol))
+        return solvers
 
     # -- discrete operators ------------------------------------------------------------------------
     def interpolate(self, values):
@@ -251,22 +268,13 @@ class FlowSolver:
         k = self.k if boundary is None else self.k_b[boundary]
         return np.einsum("fi,fi->f", k, grad_f)
 
-    # -- the step --------------------------------------------------------------------------------
-    def step(self, state: FluidState, dt: float, source=None, patch=None, forcing_iterations: int = 1,
-             step: int = 0, time: float = 0.0, penalty=None) -> dict:
-        """Collective. Advance ``state`` in place by dt. ``source``: momentum source (n_local, 3) in
-        m⁴/s² (force/ρ integrated over the cell), or None. ``patch(u_star, last)``: called (collectively)
-        with the predicted velocity, which it may change in its owned rows, ``forcing_iterations``
-        times before the projection (``last`` false), then once after it (``last`` true).
-        ``penalty()``: called before each of those momentum solves; returns (V κ (n_owned,),
-        V κ U (n_owned, 3)) of an implicit penalty κ (U − u) (the particles, ``pmpm.coupling``),
-        solved together with the diffusion. Returns diagnostics."""
+    # -- the step's stages ----------------------------------------------------------------------
+    def predictor(self, state: FluidState, dt: float) -> Predictor:
+        """Collective. The right-hand side of the momentum predictor (stage 1), everything explicit:
+        V/dt uⁿ − C(uⁿ) − V ∇pⁿ/ρ, the boundary diffusion terms and the non-orthogonal correction."""
         rho, nu, V = self.rho, self.nu, self.volume
         u, p, flux = state.u, state.p, state.flux
-        momentum_solvers = self._momentum_solvers(dt)  # (re)assembled before the step's temporaries exist
-        n_int = self.n_interior
-
-        # 1. predictor
+        self._momentum_solvers(dt)   # (re)assembled before the step's temporaries exist
         grad_p = self.gradient(p, self.boundary_pressure(p))
         u_b = self.boundary_velocity(u)
         grad_u = self.gradient(u, u_b) if (self.scheme == "linear_upwind" or not self.orthogonal) else None
@@ -286,29 +294,36 @@ class FlowSolver:
             face = np.einsum("fi,fik->fk", self.k, self.interpolate(grad_u))
             face_b = np.einsum("fi,fik->fk", self.k_b, grad_u[self.B]) * self.dirichlet_u[:, None]
             rhs += nu * (self.D @ np.concatenate([face, face_b]))
-        if source is not None:
-            rhs += source
-        # implicit diffusion; with particles, multi-direct forcing: the patch's momentum becomes a
-        # source and the diffusion is solved again, so the rigid motion holds after the solve too
-        u_star = u.copy()
-        passes = forcing_iterations if patch is not None else 1
-        for forcing_pass in range(passes):
-            rhs_pass = self._penalize(momentum_solvers, rhs, penalty)
-            for k, solver in enumerate(momentum_solvers):
-                column = np.ascontiguousarray(u_star[:, k])
-                solver.solve(rhs_pass[:, k], column, step, time)
-                u_star[:, k] = column
-            if patch is not None:  # the particles' direct forcing, before the projection (pmpm.coupling)
-                before = u_star[:self.n_owned].copy()
-                patch(u_star, False)
-                if forcing_pass < passes - 1:
-                    rhs[:self.n_owned] += V[:self.n_owned, None] * (u_star[:self.n_owned] - before) / dt
-        self.mesh.update_ghosts(u_star)
+        return Predictor(rhs, grad_p)
 
-        # 2. face flux with the Rhie–Chow pressure term
+    def solve_momentum(self, rhs: np.ndarray, guess: np.ndarray, dt: float, step: int = 0, time: float = 0.0,
+                       extra_diagonal: np.ndarray | None = None) -> np.ndarray:
+        """Collective. The implicit diffusion (stage 2): (V/dt − ν L + D) u* = rhs, one KSP solve per
+        component, from ``guess`` (n_local, 3). ``extra_diagonal`` (n_owned,) D, e.g. the particles'
+        penalty V κ (``pmpm.coupling``), replaces any earlier one; None solves without. Returns a new
+        (n_local, 3) array: owned rows solved, ghost rows those of ``guess`` (``project`` refreshes them)."""
+        solvers = self._momentum_solvers(dt)
+        for solver in {id(s): s for s in solvers}.values():   # the components may share one matrix
+            solver.set_extra_diagonal(extra_diagonal)
+        u_star = guess.copy()
+        for k, solver in enumerate(solvers):
+            column = np.ascontiguousarray(u_star[:, k])
+            solver.solve(rhs[:, k], column, step, time)
+            u_star[:, k] = column
+        return u_star
+
+    def project(self, state: FluidState, u_star: np.ndarray, predicted: Predictor, dt: float, step: int = 0,
+                time: float = 0.0, volume_source: np.ndarray | None = None) -> Projection:
+        """Collective. Face fluxes with the Rhie–Chow pressure term, then the pressure correction p'
+        that makes them divergence-free (stage 3; non-orthogonal correctors on skewed meshes), or,
+        with ``volume_source`` (n_local,) q in m³/s, makes each cell's net outflow q (the fluid that
+        new particles displace). Refreshes ``u_star``'s ghost rows first (in place)."""
+        rho, n_int = self.rho, self.n_interior
+        self.mesh.update_ghosts(u_star)
+        p, grad_p = state.p, predicted.grad_p
         c = dt / rho
         grad_p_f = self.interpolate(grad_p)
-        flux_star = np.empty_like(flux)
+        flux_star = np.empty_like(state.flux)
         flux_star[:n_int] = (np.einsum("fi,fi->f", self.interpolate(u_star) + c * grad_p_f, self.S)
                              - c * (self.a * (p[self.N] - p[self.P]) + self.nonorthogonal(grad_p_f)))
         outlet = self.kind == OUTLET
@@ -318,11 +333,11 @@ class FlowSolver:
             flux_star[n_int:][outlet] = (np.einsum("fi,fi->f", u_star[B] + c * grad_p[B], self.S_b[outlet])
                                          - c * (self.a_b[outlet] * (self.p_out[outlet] - p[B])
                                                 + self.nonorthogonal(grad_p[B], outlet)))
-
-        # 3. projection, with non-orthogonal correctors on skewed meshes
         correction = np.zeros(self.n_local)
         divergence = self.D @ flux_star
-        extra = np.zeros_like(flux)
+        if volume_source is not None:
+            divergence -= volume_source
+        extra = np.zeros_like(flux_star)
         iterations = 0
         for corrector in range(1 + (0 if self.orthogonal else self.correctors)):
             rhs_p = -(divergence - self.D @ extra) / c
@@ -331,28 +346,58 @@ class FlowSolver:
             if not self.orthogonal:
                 grad_c = self.gradient(correction, np.where(outlet, 0.0, correction[self.B]))
                 extra[:n_int] = c * np.einsum("fi,fi->f", self.k, self.interpolate(grad_c))
-        self.last_pressure_iterations = iterations
+        return Projection(flux_star - extra, correction, iterations)
 
-        # 4. correction
-        flux[:] = flux_star - extra
+    def correct(self, state: FluidState, u_star: np.ndarray, projection: Projection, dt: float) -> FluidState:
+        """Collective. The new flow (stage 4): F = F* − dt/ρ (a_f Δp' + k_f·∇̄p'), u = u* − dt/ρ ∇p',
+        p = pⁿ + p', ghost rows current."""
+        c, n_int = dt / self.rho, self.n_interior
+        correction = projection.correction
+        outlet = self.kind == OUTLET
+        flux = projection.flux.copy()
         flux[:n_int] -= c * self.a * (correction[self.N] - correction[self.P])
         if outlet.any():
             flux[n_int:][outlet] -= c * self.a_b[outlet] * (0.0 - correction[self.B[outlet]])
         grad_c = self.gradient(correction, np.where(outlet, 0.0, correction[self.B]))
-        u[:] = u_star - c * grad_c
-        if patch is not None:  # the paper's patch after the flow solve: the projection let fluid into the particles
-            patch(u, True)
-        p += correction
+        u = u_star - c * grad_c
+        p = state.p + correction
         self.mesh.update_ghosts(u)
         self.mesh.update_ghosts(p)
-        return {"pressure_iterations": iterations}
+        return FluidState(u, p, flux)
+
+    def step(self, state: FluidState, dt: float, step: int = 0, time: float = 0.0) -> FluidState:
+        """Collective. One step of the flow alone (no particles): the four stages in order."""
+        predicted = self.predictor(state, dt)
+        u_star = self.solve_momentum(predicted.rhs, state.u, dt, step, time)
+        projection = self.project(state, u_star, predicted, dt, step, time)
+        return self.correct(state, u_star, projection, dt)
 
     # -- diagnostics ------------------------------------------------------------------------------
     def cfl(self, state: FluidState, dt: float) -> float:
-        """Collective. max over owned cells of dt Σ_f |F_f| / (2 V)."""
-        outflow = abs(self.D) @ np.abs(state.flux)
-        local = float((dt * outflow[:self.n_owned] / (2 * self.volume[:self.n_owned])).max(initial=0.0))
-        return self.comm.allreduce(local, op=MPI.MAX)
+        """Collective. The CFL number: max over owned cells of dt Σ_f |F_f| / (2 V)."""
+        return self.largest_cfl(state, dt)[0]
+
+    def boundary_cfl(self, dt: float) -> float:
+        """Collective. The CFL number the boundary velocities give: their largest speed × dt over the
+        smallest cell size."""
+        speed = float(np.linalg.norm(self.u_fixed, axis=1).max(initial=0.0))
+        return self.comm.allreduce(speed * dt / float(self.h.min(initial=np.inf)), op=MPI.MAX)
+
+    def largest_cfl(self, state: FluidState, dt: float) -> tuple[float, np.ndarray | None]:
+        """Collective. The CFL number and the centre (3,) of the cell where it is reached (None
+        without cells), the same on every rank."""
+        per_cell = dt * self.convective_rates(state)
+        worst = int(np.argmax(per_cell)) if len(per_cell) else -1
+        mine = (float(per_cell[worst]), self.mesh.cell_center[worst]) if worst >= 0 else (-1.0, None)
+        if self.comm.size == 1:
+            return mine
+        return max(self.comm.allgather(mine), key=lambda pair: pair[0])
+
+    def convective_rates(self, state: FluidState) -> np.ndarray:
+        """Local. Σ_f |F_f| / (2 V) of each owned cell (1/s): its CFL number per second of dt
+        (not finite values as infinity)."""
+        rates = (self.D_abs @ np.abs(state.flux)) / (2 * self.volume[:self.n_owned])
+        return np.where(np.isnan(rates), np.inf, rates)
 
     def divergence_norm(self, state: FluidState) -> float:
         """Collective. max over owned cells of |Σ_f F_f| / V (1/s)."""
@@ -385,7 +430,8 @@ class FlowSolver:
 
     def destroy(self):
         self.pressure.destroy()
-        for solver in self.momentum:
-            solver.destroy()
+        for solvers in self._momentum.values():
+            for solver in {id(s): s for s in solvers}.values():
+                solver.destroy()
 
 

@@ -1,4 +1,4 @@
-"""Outputs (SPEC §4): particles.csv, fields.h5 + fields.xdmf, checkpoint.h5, summary.json.
+"""Outputs (README, "Outputs"): particles.csv, fields.h5 + fields.xdmf, checkpoint.h5, summary.json.
 
 Field files are written collectively with parallel HDF5. Cells and vertices are stored in the
 order of the undistributed mesh (``Mesh.cell_serial``), so the same case writes the same file on
@@ -20,12 +20,36 @@ os.environ.setdefault("H5PY_ALWAYS_USE_MPI", "1")  # Debian's h5py loads its MPI
 import h5py  # noqa: E402
 
 from .errors import CaseError  # noqa: E402
+from .mesh import VTK_ORDER  # noqa: E402
 from .parallel import agree  # noqa: E402
 
-# PETSc → VTK vertex order (a permutation that is its own inverse)
-VTK_ORDER = {"hex": [0, 3, 2, 1, 4, 5, 6, 7], "tet": [1, 0, 2, 3]}
 XDMF_TOPOLOGY = {"hex": "Hexahedron", "tet": "Tetrahedron"}
 RESULT_FILES = ("particles.csv", "fields.h5", "fields.xdmf", "summary.json", "checkpoint.h5")
+# partial writes an interrupted run leaves (the files above are replaced from them atomically)
+LEFTOVER_FILES = ("checkpoint.h5.tmp", "summary.json.tmp", "fields.xdmf.tmp")
+
+
+def output_folder_problem(folder: Path) -> str | None:
+    """Why ``folder`` may not take a run's results, or None (not collective; rank 0 asks).
+
+    A new or empty folder takes them, and so does a folder of pmpm's own earlier results, which
+    is renamed to keep them; a folder holding anything else (a case, meshes, notes, other folders)
+    is never renamed or written into, nor is the current folder.
+    """
+    if folder.exists() and not folder.is_dir():
+        return "is a file, not a folder"
+    if not folder.is_dir():
+        return None
+    entries = list(folder.iterdir())
+    foreign = sorted(e.name for e in entries if e.name not in RESULT_FILES + LEFTOVER_FILES or not e.is_file())
+    if foreign:
+        shown = ", ".join(foreign[:3]) + (", …" if len(foreign) > 3 else "")
+        return (f"holds other things than pmpm's results ({shown}); pmpm writes into a new or empty folder, or "
+                "renames a folder of its own earlier results to keep them: name another folder with --output")
+    if any((folder / f).exists() for f in RESULT_FILES) and folder.resolve() == Path.cwd().resolve():
+        return ("holds earlier results and is the current folder, which pmpm does not rename: name another "
+                "folder with --output")
+    return None
 
 
 def prepare_output_folder(comm, folder: Path, keep_existing: bool = False) -> Path | None:
@@ -34,10 +58,20 @@ def prepare_output_folder(comm, folder: Path, keep_existing: bool = False) -> Pa
     If ``folder`` already holds results (``particles.csv``, ``fields.h5``, ...), it is renamed to the
     first free ``<folder>.1``, ``<folder>.2``, ... and a fresh folder is made. Returns the new name of
     the earlier results, or None. ``keep_existing`` (a restart) writes into the folder as it is.
+    A folder that holds anything but pmpm's results is refused (``output_folder_problem``); the
+    partial files of an interrupted run (``checkpoint.h5.tmp``, ...) are removed, and the run says so.
     """
     error = moved = None
     if comm.rank == 0:
         try:
+            problem = output_folder_problem(folder)
+            if problem is not None:
+                raise CaseError(f"output folder {folder}: {problem}")
+            for name in LEFTOVER_FILES:
+                if (folder / name).is_file():
+                    (folder / name).unlink()
+                    print(f"pmpm: removed {folder / name}, an incomplete file left by an interrupted run",
+                          flush=True)
             if not keep_existing and folder.is_dir() and any((folder / f).exists() for f in RESULT_FILES):
                 n = 1
                 while folder.with_name(f"{folder.name}.{n}").exists():
@@ -45,6 +79,8 @@ def prepare_output_folder(comm, folder: Path, keep_existing: bool = False) -> Pa
                 moved = folder.with_name(f"{folder.name}.{n}")
                 folder.rename(moved)
             folder.mkdir(parents=True, exist_ok=True)
+        except CaseError as exc:
+            error = exc
         except OSError as exc:
             error = CaseError(f"--output {folder}: cannot prepare the output folder: {exc.strerror}")
     agree(comm, error)
@@ -237,6 +273,30 @@ class ParticleWriter:
         formats = ["%.9g", "%d"] + ["%.12g"] * (table.shape[1] - 2)
         with open(self.path, "a") as f:
             np.savetxt(f, table, fmt=formats, delimiter=",")
+
+
+@dataclass
+class Writers:
+    """The files of one output time: particles.csv rows and a fields.h5 group. Collective."""
+
+    particles: ParticleWriter
+    fields: FieldWriter
+    with_fluid: bool
+
+    @classmethod
+    def open(cls, comm, folder: Path, mesh, with_fluid: bool) -> "Writers":
+        return cls(ParticleWriter(comm, folder, with_fluid), FieldWriter(comm, folder, mesh, with_fluid), with_fluid)
+
+    def write(self, state) -> None:
+        """Collective. One output time of a ``pmpm.state.RunState``."""
+        particles = state.particles
+        fields = {}
+        if self.with_fluid:
+            fields = {"velocity": state.fluid.u, "pressure": state.fluid.p, "volume_fraction": state.volume_fraction}
+        self.particles.write(state.time, particles, state.hydro_force, state.hydro_torque)
+        arrays = {"id": particles.id, "position": particles.x, "velocity": particles.v,
+                  "angular_velocity": particles.omega, "radius": particles.radius, "density": particles.density}
+        self.fields.write(state.time, fields, arrays)
 
 
 def write_summary(comm, folder: Path, summary: dict) -> None:

@@ -3,7 +3,7 @@
 DMPlex does what it is good at: partitioning (ptscotch), ``distribute(overlap=1)`` with finite-volume
 adjacency (one layer of face-neighbour ghost cells), and the star forests that say which local
 point is a copy of which remote one. Everything the time loop touches is built here, once, as
-numpy arrays over the whole rank (STACK.md §4, R2): no per-cell or per-face petsc4py call after
+numpy arrays over the whole rank: no per-cell or per-face petsc4py call after
 construction. The field contract is the table in ARCHITECTURE.md.
 
 Local numbering: owned cells ``[0, n_owned_cells)``, ghost cells after them. Faces hold every face
@@ -24,11 +24,12 @@ from petsc4py import PETSc
 from scipy.spatial import cKDTree
 
 from .errors import CaseError
-from .parallel import agree
+from .parallel import agree, allreduce_sum
+from .partition import set_coordinate_partition
 
 BOX_BOUNDARIES = ("xmin", "xmax", "ymin", "ymax", "zmin", "zmax")
 UNNAMED_BOUNDARY = "boundary"
-# Faces of a cell as local vertex indices, PETSc vertex order (STACK.md §2.1). Orientation is fixed
+# Faces of a cell as local vertex indices, PETSc vertex order. Orientation is fixed
 # geometrically afterwards, so only the grouping into faces matters here.
 CELL_FACES = {
     "hex": np.array([(0, 1, 2, 3), (4, 5, 6, 7), (0, 3, 5, 4), (1, 7, 6, 2), (3, 2, 6, 5), (0, 4, 7, 1)]),
@@ -38,8 +39,9 @@ VERTICES_PER_CELL = {"hex": 8, "tet": 4}
 # meshio cell block names of the volume and surface elements pmpm reads
 MESHIO_VOLUME = {"hexahedron": "hex", "tetra": "tet"}
 MESHIO_SURFACE = ("triangle", "quad")
-# meshio/VTK/gmsh vertex order → PETSc order (STACK.md §2.1)
-FROM_VTK = {"hex": np.array([0, 3, 2, 1, 4, 5, 6, 7]), "tet": np.array([1, 0, 2, 3])}
+# the vertex order of meshio, VTK and gmsh against PETSc's: a permutation that is its own inverse,
+# so it maps either order to the other
+VTK_ORDER = {"hex": np.array([0, 3, 2, 1, 4, 5, 6, 7]), "tet": np.array([1, 0, 2, 3])}
 
 
 class Mesh:
@@ -56,7 +58,7 @@ class Mesh:
         cells = [int(n) for n in cells]
         start = wallclock.perf_counter()
         if cell_type == "hex":
-            # PETSc's own generator interpolates 15× faster than createFromCellList (STACK.md §4);
+            # PETSc's own generator interpolates far faster than createFromCellList;
             # it numbers cells and vertices lexicographically (checked on a sample below)
             dm = PETSc.DMPlex().createBoxMesh(cells, lower=tuple(lower), upper=tuple(upper), simplex=False,
                                               interpolate=True, comm=comm)
@@ -108,7 +110,9 @@ class Mesh:
             # a boundary face is found in the file's list of tagged faces by its sorted vertex ids
             keys = np.sort(mesh.vertex_serial[mesh.face_vertices[faces]], axis=1)[:, :3]
             where = match_rows(keys, tagged_faces[0])
-            index = np.where(where >= 0, tagged_faces[1][np.maximum(where, 0)], len(tag_names))
+            # a file without named surfaces (e.g. only a volume group): every face is "boundary"
+            tagged = tagged_faces[1][np.maximum(where, 0)] if len(tagged_faces[1]) else np.zeros(len(where), np.int64)
+            index = np.where(where >= 0, tagged, len(tag_names))
             names = tag_names + [UNNAMED_BOUNDARY]
             # drop names no face carries (collectively, so every rank keeps the same list)
             used = np.zeros(len(names), np.int64)
@@ -137,6 +141,12 @@ class Mesh:
         dm.setBasicAdjacency(True, False)  # finite-volume adjacency: the overlap is the face neighbours
         self.build_stages = {"create": wallclock.perf_counter() - start_time}
         mark = wallclock.perf_counter()
+        if comm.size > 1:   # partitioned by coordinates, on rank 0: the same partition in every run
+            centres = None
+            if comm.rank == 0:
+                xyz = dm.getCoordinatesLocal().getArray().reshape(-1, 3)
+                centres = xyz[serial_vertices(np.arange(n_global_cells))].mean(axis=1)
+            set_coordinate_partition(dm, comm, centres)
         migration = dm.distribute(overlap=1) if comm.size > 1 else None
         self.build_stages["distribute"] = wallclock.perf_counter() - mark
         mark = wallclock.perf_counter()
@@ -153,7 +163,7 @@ class Mesh:
             self.cell_serial = np.arange(n_local, dtype=np.int64)
             self.vertex_serial = np.arange(vertex_end - vertex_start, dtype=np.int64)
 
-        # owned cells first, then ghosts (STACK.md §2.2, asserted here)
+        # owned cells first, then ghosts (DMPlex numbers them so; asserted here)
         numbering = dm.getCellNumbering().getIndices()
         owned = numbering >= 0
         self.n_owned_cells = int(owned.sum())
@@ -185,7 +195,7 @@ class Mesh:
         sample = np.unique(np.linspace(0, n_local - 1, min(n_local, 64)).astype(np.int64))
         closure = np.array([dm.getTransitiveClosure(c + cell_start)[0][-k:] for c in sample]).reshape(-1, k)
         if not np.array_equal(np.sort(closure - vertex_start, axis=1), np.sort(cell_vertices[sample], axis=1)):
-            # not the numbering assumed: ask DMPlex for every cell (2.8 µs each, STACK.md §4)
+            # not the numbering assumed: ask DMPlex for every cell (slow: one call per cell)
             cell_vertices = np.array([dm.getTransitiveClosure(c)[0][-k:] for c in range(cell_start, cell_end)],
                                      dtype=np.int64).reshape(n_local, k) - vertex_start
         self.cell_vertices = cell_vertices
@@ -211,7 +221,7 @@ class Mesh:
         self.build_seconds = comm.allreduce(wallclock.perf_counter() - start_time, op=MPI.MAX)
 
     def _build_faces_and_geometry(self):
-        """Faces by hashing the cells' faces, then areas, volumes and centroids (STACK.md §4)."""
+        """Faces by hashing the cells' faces, then areas, volumes and centroids."""
         xyz, cv = self.vertex_xyz, self.cell_vertices
         pattern = CELL_FACES[self.cell_type]
         n_local, n_per_cell = len(cv), len(pattern)
@@ -326,6 +336,11 @@ class Mesh:
                 if len(rest) == 0:
                     break
         return found
+
+    def inside_domain(self, points: np.ndarray) -> np.ndarray:
+        """Collective. (n,) bool: the point lies in some rank's owned cells."""
+        found = (self.find_owned_cells(points) >= 0).astype(np.int64)
+        return allreduce_sum(self.comm, found) > 0
 
     def contains(self, cells: np.ndarray, points: np.ndarray) -> np.ndarray:
         """Local. Whether each point lies in (or on) the cell beside it; arrays broadcast together."""
@@ -515,6 +530,8 @@ def read_mesh_file(path: Path):
     """
     import meshio
 
+    if path.is_dir():
+        raise CaseError(f"{path}: is a folder, not a mesh file")
     if not path.is_file():
         raise CaseError(f"{path}: mesh file not found")
     chatter = io.StringIO()
@@ -543,7 +560,7 @@ def read_mesh_file(path: Path):
     xyz = np.asarray(data.points, float)[used]
     if xyz.shape[1] == 2:
         raise CaseError(f"{path}: a 2-D mesh; pmpm needs a 3-D volume mesh")
-    cells = renumber[cells][:, FROM_VTK[cell_type]]
+    cells = renumber[cells][:, VTK_ORDER[cell_type]]
     if cell_type == "tet":
         cells = orient_tetrahedra(xyz, cells)
     # named surface elements (gmsh physical groups of dimension 2)

@@ -9,7 +9,7 @@ import sys
 import numpy as np
 from mpi4py import MPI
 
-from .errors import CaseError, NumericalError
+from .errors import CaseError, NumericalError, one_line
 
 
 def print0(comm, *args, **kwargs):
@@ -21,7 +21,7 @@ def print0(comm, *args, **kwargs):
 def warn(comm, message: str):
     """A warning on stderr, tagged with the rank when there are several (not collective)."""
     tag = f"[rank {comm.rank}] " if comm.size > 1 else ""
-    print(f"pmpm: warning: {tag}{message}", file=sys.stderr, flush=True)
+    print(f"pmpm: warning: {tag}{one_line(message)}", file=sys.stderr, flush=True)
 
 
 def agree(comm, error: Exception | None):

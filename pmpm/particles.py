@@ -2,17 +2,21 @@
 
 Particle counts are small next to cell counts, so every rank holds every particle and applies the
 same update; work over cells is what the ranks share. Solid spheres: m = ρ 4/3 π r³, I = 2/5 m r².
+
+A ``ParticleState`` is a value: the stages of a time step return a new one (``appended``,
+``without``, or a ``copy`` they then change), so the state a step started from stays as it was
+(the time loop keeps it, to write it if the step fails).
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields, replace
 
 import numpy as np
 
 FREE, FIXED, PRESCRIBED = 0, 1, 2  # ParticleState.motion codes (pmpm.injection.MOTION_CODES)
 
 
-@dataclass
+@dataclass(frozen=True)
 class ParticleState:
     """Every particle's state (SI). Rows are particles, sorted by ``id``."""
 
@@ -52,27 +56,31 @@ class ParticleState:
         """Particles whose velocities respond to forces and impulses (free and not deposited)."""
         return (self.motion == FREE) & ~self.deposited
 
-    def append(self, ids, x, v, omega, radius, density, motion) -> None:
-        """Add particles (ids larger than every id held, so the rows stay sorted)."""
-        n = len(ids)
-        self.id = np.concatenate([self.id, np.asarray(ids, np.int64)])
-        self.x = np.concatenate([self.x, np.reshape(x, (n, 3))])
-        self.v = np.concatenate([self.v, np.reshape(v, (n, 3))])
-        self.omega = np.concatenate([self.omega, np.reshape(omega, (n, 3))])
-        self.radius = np.concatenate([self.radius, radius])
-        self.density = np.concatenate([self.density, density])
-        self.motion = np.concatenate([self.motion, np.asarray(motion, np.int8)])
-        self.deposited = np.concatenate([self.deposited, np.zeros(n, bool)])
+    def copy(self) -> "ParticleState":
+        """A copy whose arrays may be changed in place without touching this state."""
+        return replace(self, **{f.name: getattr(self, f.name).copy() for f in fields(self)})
 
-    def remove(self, which: np.ndarray) -> None:
-        """Drop the particles where ``which`` (bool mask) is true."""
+    def appended(self, ids, x, v, omega, radius, density, motion) -> "ParticleState":
+        """These particles and the given ones (ids larger than every id held, so the rows stay sorted)."""
+        n = len(ids)
+        return ParticleState(
+            np.concatenate([self.id, np.asarray(ids, np.int64)]),
+            np.concatenate([self.x, np.reshape(x, (n, 3))]),
+            np.concatenate([self.v, np.reshape(v, (n, 3))]),
+            np.concatenate([self.omega, np.reshape(omega, (n, 3))]),
+            np.concatenate([self.radius, radius]),
+            np.concatenate([self.density, density]),
+            np.concatenate([self.motion, np.asarray(motion, np.int8)]),
+            np.concatenate([self.deposited, np.zeros(n, bool)]))
+
+    def without(self, which: np.ndarray) -> "ParticleState":
+        """These particles less those where ``which`` (bool mask) is true."""
         keep = ~which
-        for name in ("id", "x", "v", "omega", "radius", "density", "motion", "deposited"):
-            setattr(self, name, getattr(self, name)[keep])
+        return replace(self, **{f.name: getattr(self, f.name)[keep] for f in fields(self)})
 
 
 def accelerate(state: ParticleState, force: np.ndarray, torque: np.ndarray, dt: float) -> None:
-    """Newton–Euler update of the free particles' V and ω over dt (explicit)."""
+    """Newton–Euler update of the free particles' V and ω over dt (explicit), in place."""
     free = state.movable
     state.v[free] += dt * force[free] / state.mass[free, None]
     state.omega[free] += dt * torque[free] / state.inertia[free, None]

@@ -141,18 +141,23 @@ class CellKSP:
         self.total_iterations = 0
         self._base_diagonal = None   # the matrix's own diagonal, kept while an addition is in place
 
-    def add_to_diagonal(self, extra: np.ndarray) -> None:
+    def set_extra_diagonal(self, extra: np.ndarray | None) -> None:
         """Collective. Set the diagonal to the assembled one plus ``extra`` (n_owned,), replacing any
-        earlier addition (the particles' penalty, which changes every step). PETSc sees the matrix
-        state change, so the preconditioner is set up again at the next solve."""
+        earlier addition (the particles' penalty, which changes every step); None restores the
+        assembled diagonal. PETSc sees the matrix state change, so the preconditioner is set up
+        again at the next solve."""
+        if extra is None and self._base_diagonal is None:
+            return
         if self._base_diagonal is None:
             assembled = self.matrix.getDiagonal()
             self._base_diagonal = assembled.getArray().copy()
             assembled.destroy()
-        diagonal = PETSc.Vec().createWithArray(self._base_diagonal + extra[:self.n_owned],
-                                               size=(self.n_owned, self.mesh.n_global_cells), comm=self.comm)
+        values = self._base_diagonal if extra is None else self._base_diagonal + extra[:self.n_owned]
+        diagonal = PETSc.Vec().createWithArray(values, size=(self.n_owned, self.mesh.n_global_cells), comm=self.comm)
         self.matrix.setDiagonal(diagonal, addv=PETSc.InsertMode.INSERT_VALUES)
         diagonal.destroy()
+        if extra is None:
+            self._base_diagonal = None
 
     def set_atol(self, atol: float) -> None:
         """The absolute tolerance on ‖b − A x‖, the other tolerances kept."""
@@ -197,10 +202,18 @@ class CellKSP:
             raise NumericalError(
                 f"the {self.what} solve did not converge at step {step}, t = {time:.6g} s: KSP "
                 f"{ksp_reason_name(reason)} after {self.iterations} iterations (residual "
-                f"{self.ksp.getResidualNorm():.3g}, |b| {self._b.norm():.3g}); reduce [run] dt or try "
-                f"another -{self.ksp.getOptionsPrefix()}pc_type")
+                f"{self.ksp.getResidualNorm():.3g}, |b| {self._b.norm():.3g}); {self._advice()}")
         solution[:self.n_owned] = self._x_array
         return self.iterations
+
+    def _advice(self) -> str:
+        """What to change after a failed solve. The momentum matrix V/dt − ν L is diagonally dominant:
+        CG + Jacobi fails on it only when its right-hand side has blown up, i.e. the time step."""
+        prefix = self.ksp.getOptionsPrefix()
+        if self.what == "momentum":
+            return (f"the flow is likely unstable at this time step: reduce [run] dt first (the CFL number "
+                    f"should stay below 1); a -{prefix}pc_type is seldom the cause")
+        return f"reduce [run] dt or try another -{prefix}pc_type"
 
     def residual_norm(self, rhs: np.ndarray, solution: np.ndarray) -> tuple[float, float]:
         """Collective. (‖b − A x‖, ‖b‖) over all ranks, null space removed from b."""

@@ -1,32 +1,57 @@
-"""The time loop: builds the pieces a case asks for and runs them, timing each stage.
+"""The time loop: the pieces a case asks for, one time step as a sequence of stages, and the run.
 
-One step, top to bottom (ARCHITECTURE.md): inject → locate → flow → patch → reduce drag/torque →
-forces → move with collisions → owners/outflow → write. A section absent from the case builds
-nothing, and its stages cost nothing.
+A section absent from the case builds nothing (``build_model``), and its stages cost nothing. Every
+stage takes the run state (``pmpm.state.RunState``) and returns a new one; ``advance`` is one step,
+top to bottom, and ``run`` repeats it, writing outputs and checkpoints on the way.
 """
 from __future__ import annotations
 
-import copy
 import math
+import signal
 import time as wallclock
-from dataclasses import dataclass, field
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
 from mpi4py import MPI
 
-from . import checkpoint, io
+from . import checkpoint, checks, io, reporting
 from .case import Case, case_path, load_case, suggest
-from .errors import CaseError, NumericalError
-from .collisions import (advance_with_collisions, build_walls, check_initial_particles, collision_settings,
-                         overlaps_existing)
-from .coupling import Coupling
+from .collisions import (CollisionSettings, advance_with_collisions, build_walls, check_initial_particles,
+                         collision_settings)
+from .coupling import CouplingMemory, External, PatchForcing, PenaltyForcing, build_forcing, volume_fraction
+from .errors import CaseError, NumericalError, Stopped
 from .fluid import FlowSolver
 from .forces import field_forces_of_case, gravity_buoyancy
-from .injection import NewParticles, build_injectors, initial_particles
+from .injection import Injector, NewParticles, build_injectors, initial_particles
+from .placement import place_releases
 from .mesh import Mesh
-from .parallel import agree, allreduce_sum, print0, warn
-from .particles import ParticleState, accelerate
+from .parallel import allreduce_sum, print0
+from .particles import FIXED, ParticleState, accelerate
+from .reporting import StageTimes
+from .signals import StopRequests
+from .state import RunState
+
+
+# ----------------------------------------------------------------------------------------------
+# Building: the fixed pieces of a run, and its first state
+# ----------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Model:
+    """What a case asks for, built once: mesh, flow solver, forcing, injectors, contact settings
+    (None where the case's section is absent). Collective objects keep ``comm``."""
+
+    comm: object
+    case: Case
+    mesh: Mesh
+    flow: FlowSolver | None
+    forcing: PenaltyForcing | PatchForcing | None
+    injectors: tuple[Injector, ...]
+    contact_settings: CollisionSettings | None
+
+    @property
+    def fluid_density(self) -> float:
+        return self.case.fluid.density if self.case.fluid is not None else 0.0
 
 
 def build_mesh(comm, case: Case) -> Mesh:
@@ -47,363 +72,413 @@ def check_boundaries(case: Case, mesh: Mesh) -> None:
                             f" (it has: {', '.join(names)})")
 
 
-@dataclass
-class StageTimes:
-    """Wall seconds per stage, summed over the run (rank 0's clock)."""
-
-    seconds: dict = field(default_factory=dict)
-
-    def add(self, stage: str, seconds: float):
-        self.seconds[stage] = self.seconds.get(stage, 0.0) + seconds
-
-
-class Timer:
-    """``with Timer(times, "flow"):`` adds the block's wall time to a stage."""
-
-    def __init__(self, times: StageTimes, stage: str):
-        self.times, self.stage = times, stage
-
-    def __enter__(self):
-        self.start = wallclock.perf_counter()
-
-    def __exit__(self, *exc):
-        self.times.add(self.stage, wallclock.perf_counter() - self.start)
+def build_model(comm, case: Case, mesh: Mesh) -> Model:
+    """Collective. The pieces of ``case`` on ``mesh``."""
+    flow = forcing = None
+    if case.fluid is not None:
+        flow = FlowSolver(mesh, case.fluid, case.boundaries)
+        forcing = build_forcing(mesh, case.coupling, case.fluid)
+    return Model(comm, case, mesh, flow, forcing, build_injectors(case),
+                 collision_settings(case) if case.collisions else None)
 
 
-class Progress:
-    """Compact progress lines on rank 0: step, simulated time, wall time, ETA."""
+def initial_state(model: Model) -> RunState:
+    """Collective. The state at t = 0: fluid at rest, the case's particles (checked: inside the
+    domain, not overlapping each other or a wall)."""
+    case, mesh = model.case, model.mesh
+    walls = build_walls(case, mesh) if (case.collisions or case.field_forces or case.deposition) else None
+    fluid = model.flow.initial_state() if model.flow is not None else None
+    state = RunState(0.0, 0, ParticleState.empty(), fluid, np.zeros((0, 3)), np.zeros((0, 3)),
+                     np.zeros(mesh.n_local_cells) if fluid is not None else None, next_id=0, removed=0,
+                     releases=(0,) * len(model.injectors), coupling=CouplingMemory() if fluid is not None else None,
+                     walls=walls)
+    state = add_particles(model, state, initial_particles(case), validate=True)
+    return replace(state, fresh_from=state.next_id)
 
-    def __init__(self, comm, end_time: float, quiet: bool, every_seconds: float = 5.0, start_time: float = 0.0):
-        self.comm, self.end_time, self.quiet, self.every = comm, end_time, quiet, every_seconds
-        self.start_time = start_time
-        self.start = self.last = wallclock.perf_counter()
 
-    def update(self, step: int, time: float, extra: str = "", force: bool = False):
-        now = wallclock.perf_counter()
-        if self.quiet or (not force and now - self.last < self.every):
-            return
-        self.last = now
-        elapsed = now - self.start
-        done = time - self.start_time
-        eta = elapsed * (self.end_time - time) / done if done > 0 else math.nan
-        print0(self.comm, f"step {step:7d}  t = {time:.6g} s  ({100 * time / self.end_time:5.1f} %)  "
-                          f"wall {elapsed:8.1f} s  ETA {eta:8.1f} s{extra}")
+def add_particles(model: Model, state: RunState, new: NewParticles, validate: bool = False) -> RunState:
+    """Collective. ``state`` with the ``new`` particles, with fresh ids. ``validate`` (the case's own
+    particles): any outside the domain, or overlapping another particle or a wall, is a CaseError."""
+    if len(new) == 0:
+        return state
+    if validate:
+        check_initial_particles(model.case, new, model.mesh.inside_domain(new.x), state.walls)
+    n = len(new)
+    particles = state.particles.appended(state.next_id + np.arange(n), new.x, new.v, new.omega, new.radius,
+                                         new.density, new.motion)
+    return replace(state, particles=particles, next_id=state.next_id + n,
+                   hydro_force=np.concatenate([state.hydro_force, np.zeros((n, 3))]),
+                   hydro_torque=np.concatenate([state.hydro_torque, np.zeros((n, 3))]))
+
+
+# ----------------------------------------------------------------------------------------------
+# One time step
+# ----------------------------------------------------------------------------------------------
+def advance(model: Model, state: RunState, dt: float, times: StageTimes) -> RunState:
+    """Collective. One time step, stage by stage (ARCHITECTURE.md)."""
+    # 6, needed by the coupled update: gravity with buoyancy, field forces
+    with times.stage("forces"):
+        external = external_forces(model, state)
+    # 2–5. locate the particles' cells, advance the flow with their forcing, drag and torque
+    force, torque = external.force, external.torque
+    if model.flow is not None:
+        state = flow_stage(model, state, external, dt, times, injected=state.particles.id >= state.fresh_from)
+        force, torque = force + state.hydro_force, torque + state.hydro_torque
+    # 7. update V and ω, then move, with collisions resolved in time order
+    with times.stage("collisions" if model.contact_settings is not None else "motion"):
+        state = move_particles(model, state, force, torque, dt)
+    # 8. particles that left the domain are removed
+    with times.stage("owners"):
+        state = remove_outside(model, state)
+    # 1 (of the next step). particles released within this step, where they are at its end
+    state = replace(state, fresh_from=state.next_id)
+    if model.injectors:
+        with times.stage("injection"):
+            state = inject(model, state, state.time + dt)
+    state = replace(state, time=state.time + dt, step=state.step + 1, dt=dt)
+    check_finite(state.particles, state.step, state.time)
+    return state
+
+
+def inject(model: Model, state: RunState, time_end: float) -> RunState:
+    """Collective. The releases of every injection due by ``time_end``, each particle where its
+    release velocity has taken it by then (released at t, it flies time_end − t), placed clear of
+    the walls and the other particles (``pmpm.placement``; its counts are summed in the state)."""
+    parts, releases = [], []
+    for injector, next_release in zip(model.injectors, state.releases):
+        new, next_release = injector.due(next_release, time_end)
+        parts.append(new)
+        releases.append(next_release)
+    state = replace(state, releases=tuple(releases))
+    new = NewParticles.concatenate(parts)
+    if len(new) == 0:
+        return state
+    flight = new.v * (time_end - new.release_times)[:, None]
+    new = replace(new, x=new.x + flight, alternatives=new.other_positions + flight)
+    placement = place_releases(model.mesh, state.particles, state.walls, new)
+    totals = {key: state.injection_counts.get(key, 0) + value for key, value in placement.counts.items()}
+    return replace(add_particles(model, state, placement.placed), injection_counts=totals)
+
+
+def external_forces(model: Model, state: RunState) -> External:
+    """Gravity less buoyancy and the field forces (eq. 9–10) on each particle; no torque."""
+    case, particles = model.case, state.particles
+    force = gravity_buoyancy(particles, np.array(case.run.gravity), model.fluid_density)
+    if case.field_forces is not None:
+        force += field_forces_of_case(particles, state.walls, case.field_forces)
+    return External(force, np.zeros_like(force))
+
+
+def flow_stage(model: Model, state: RunState, external: External, dt: float, times: StageTimes,
+               injected: np.ndarray | None = None) -> RunState:
+    """Collective. Steps 2–5: the particles' touched cells, the flow advanced with their forcing
+    (``forcing_passes`` momentum solves, the forcing updating its guess of the particles' motion
+    after each), the projection, and the fluid's force and torque on each particle. Particles
+    ``injected`` this step (bool mask) displace their volume of fluid, which the projection
+    makes leave through the outlets."""
+    flow, forcing, particles = model.flow, model.forcing, state.particles
+    n_owned = model.mesh.n_owned_cells
+    step, time = state.step, state.time
+    coupled = len(particles) > 0
+    passes = model.case.coupling.forcing_passes if coupled else 1
+    fluid = state.fluid
+    with times.stage("coupling"):
+        touched = forcing.locate(particles)
+        displaced = displaced_volume(model, particles, touched, injected, dt)
+        if coupled:
+            forcing_state, fluid = forcing.begin(particles, touched, fluid, state.coupling, dt)
+    with times.stage("flow"):
+        predicted = flow.predictor(fluid, dt)
+    rhs, u_star = predicted.rhs, fluid.u
+    for forcing_pass in range(passes):
+        diagonal = target = None
+        if coupled:
+            with times.stage("coupling"):
+                diagonal, target = forcing.implicit_terms(particles, forcing_state)
+        with times.stage("flow"):
+            u_star = flow.solve_momentum(rhs if target is None else plus_owned(rhs, target), u_star, dt, step, time,
+                                         extra_diagonal=diagonal)
+        if coupled:
+            with times.stage("coupling"):
+                u_star, source, forcing_state = forcing.after_solve(particles, forcing_state, u_star, external, dt)
+            if source is not None and forcing_pass < passes - 1:
+                rhs = plus_owned(rhs, source)
+    with times.stage("flow"):
+        projection = flow.project(fluid, u_star, predicted, dt, step, time, volume_source=displaced)
+        fluid = flow.correct(fluid, u_star, projection, dt)
+    with times.stage("coupling"):
+        fractions = np.zeros(model.mesh.n_local_cells)
+        fractions[:n_owned] = volume_fraction(touched, n_owned)
+        state = replace(state, fluid=fluid, volume_fraction=fractions,
+                        pressure_iterations=state.pressure_iterations + projection.iterations)
+        if coupled:
+            exchange = forcing.after_projection(particles, forcing_state, fluid, external, dt, state.coupling,
+                                                step, time)
+            state = replace(state, fluid=exchange.fluid, hydro_force=exchange.force, hydro_torque=exchange.torque,
+                            coupling=exchange.memory)
+    flow.check(state.fluid, step, time)
+    return state
+
+
+def displaced_volume(model: Model, particles: ParticleState, touched, injected: np.ndarray | None,
+                     dt: float) -> np.ndarray | None:
+    """Collective (when particles were injected). The paper's mass source for continuous
+    injection, (n_local,) m³/s: each particle injected this step displaces its volume of fluid
+    within the step, shared among the cells it covers by their α V; None when none was."""
+    if injected is None or not injected.any():
+        return None
+    mesh = model.mesh
+    new = injected[touched.particle]
+    p, c = touched.particle[new], touched.cell[new]
+    covered = touched.alpha[new] * mesh.cell_volume[c]
+    per_particle = allreduce_sum(model.comm, np.bincount(p, covered, minlength=len(particles)))
+    share = covered / np.maximum(per_particle[p], np.finfo(float).tiny)
+    source = np.zeros(mesh.n_local_cells)
+    source[:mesh.n_owned_cells] = np.bincount(c, share * particles.volume[p] / dt, minlength=mesh.n_owned_cells)
+    return source
+
+
+def plus_owned(array: np.ndarray, owned_rows: np.ndarray) -> np.ndarray:
+    """A copy of ``array`` with ``owned_rows`` added to its first rows (the owned cells')."""
+    out = array.copy()
+    out[:len(owned_rows)] += owned_rows
+    return out
+
+
+def move_particles(model: Model, state: RunState, force: np.ndarray, torque: np.ndarray, dt: float) -> RunState:
+    """Newton–Euler update of V and ω, then the motion over dt with contacts resolved in time
+    order (``[coupling] substeps`` times with a flow)."""
+    substeps = model.case.coupling.substeps if model.flow is not None else 1
+    particles = state.particles.copy()
+    walls, contacts, totals = state.walls, state.contacts, state.collision_totals
+    for _ in range(substeps):
+        accelerate(particles, force, torque, dt / substeps)
+        if model.contact_settings is not None:
+            result = advance_with_collisions(particles, walls, dt / substeps, model.contact_settings, contacts)
+            walls, contacts = result.walls, result.memory
+            totals = {**totals, **{key: totals.get(key, 0) + int(value) for key, value in result.stats.items()}}
+        else:
+            free = particles.motion != FIXED
+            particles.x[free] += particles.v[free] * dt / substeps
+    return replace(state, particles=particles, walls=walls, contacts=contacts, collision_totals=totals)
+
+
+def remove_outside(model: Model, state: RunState) -> RunState:
+    """Collective. Particles whose centre left the domain are removed (counted in ``removed``)."""
+    if len(state.particles) == 0:
+        return state
+    outside = ~model.mesh.inside_domain(state.particles.x)
+    if not outside.any():
+        return state
+    return replace(state, particles=state.particles.without(outside), removed=state.removed + int(outside.sum()),
+                   hydro_force=state.hydro_force[~outside], hydro_torque=state.hydro_torque[~outside])
+
+
+def check_finite(particles: ParticleState, step: int, time: float) -> None:
+    """Raise NumericalError naming the first particle whose state is not finite."""
+    bad = ~np.isfinite(particles.x).all(axis=1) | ~np.isfinite(particles.v).all(axis=1)
+    if bad.any():
+        pid = int(particles.id[np.argmax(bad)])
+        raise NumericalError(f"step {step}, t = {time:.6g} s: particle {pid} has a non-finite position or "
+                             "velocity; reduce [run] dt")
+
+
+# ----------------------------------------------------------------------------------------------
+# The run
+# ----------------------------------------------------------------------------------------------
+class Simulation:
+    """A model and its current run state: ``advance`` steps it, ``run`` runs the case to its end.
+    Collective. For scripts and tests the state's parts are at hand as attributes."""
+
+    def __init__(self, comm, case: Case, mesh: Mesh, quiet: bool = False, state: RunState | None = None):
+        self.comm, self.quiet = comm, quiet
+        self.model = build_model(comm, case, mesh)
+        self.state = initial_state(self.model) if state is None else state
+        self.times = StageTimes()
+
+    def advance(self, dt: float) -> None:
+        """Collective. One time step of the current state."""
+        self.state = advance(self.model, self.state, dt, self.times)
+
+    case = property(lambda self: self.model.case)
+    mesh = property(lambda self: self.model.mesh)
+    flow = property(lambda self: self.model.flow)
+    forcing = property(lambda self: self.model.forcing)
+    time = property(lambda self: self.state.time)
+    particles = property(lambda self: self.state.particles)
+    fluid_state = property(lambda self: self.state.fluid)
+    hydro_force = property(lambda self: self.state.hydro_force)
+    hydro_torque = property(lambda self: self.state.hydro_torque)
+
+    def describe_flow(self) -> str:
+        return reporting.describe_flow(self.model, self.state)
+
+    def run(self, output: Path, setup_seconds: float) -> None:
+        """Collective. Run to end_time, writing outputs and checkpoints on the way. Stops early, its
+        state written, at the wall-time limit or on SIGTERM/SIGINT (``Stopped``, after a checkpoint);
+        on a numerical failure or a diverging flow (``NumericalError``) the last good state is
+        written first."""
+        model, run = self.model, self.model.case.run
+        writers = io.Writers.open(self.comm, output, model.mesh, model.flow is not None)
+        progress = reporting.Progress(self.comm, run.end_time, self.quiet, start_time=self.state.time)
+        started = wallclock.perf_counter()
+        writers.write(self.state)
+        next_output = (math.floor(self.state.time / run.output_every + 1e-9) + 1) * run.output_every
+        every = run.checkpoint_every
+        next_checkpoint = (math.floor(self.state.time / every + 1e-9) + 1) * every if every else math.inf
+        status, stop = "completed", None
+        checkpoint_time = self.state.time
+        watch = FlowWatch(self.state, model.flow.boundary_cfl(run.dt) if model.flow is not None else 0.0)
+        try:
+            with StopRequests() as stops:
+                while self.state.time < run.end_time * (1 - 1e-12):
+                    dt = next_time_step(model, self.state, min(next_output, next_checkpoint, run.end_time))
+                    self.advance(dt)   # on a NumericalError self.state stays the state the step started from
+                    watch = watch_flow(model, self.state, dt, watch)
+                    time = self.state.time
+                    if time >= next_output * (1 - 1e-9) or time >= run.end_time * (1 - 1e-12):
+                        with self.times.stage("output"):
+                            writers.write(self.state)
+                        while next_output <= time * (1 + 1e-9):
+                            next_output += run.output_every
+                    if time >= next_checkpoint * (1 - 1e-9):
+                        with self.times.stage("checkpoint"):
+                            checkpoint.write(self.comm, output, model.mesh, self.state)
+                        checkpoint_time = time
+                        while next_checkpoint <= time * (1 + 1e-9):
+                            next_checkpoint += every
+                    progress.update(self.state.step, time, f"  particles {len(self.state.particles)}")
+                    signal_number = stops.agreed(self.comm)
+                    if signal_number:
+                        stop = Stopped(stop_message(self.state, signal_number, output), signal_number)
+                        status = f"stopped by {signal.Signals(signal_number).name}"
+                    elif run.wall_time_limit and wallclock.perf_counter() - started > run.wall_time_limit:
+                        status = "stopped at the wall-time limit"
+                    if status != "completed":
+                        writers.write(self.state)
+                        break
+            if (every or stop) and checkpoint_time != self.state.time:   # for a later continuation
+                with self.times.stage("checkpoint"):
+                    checkpoint.write(self.comm, output, model.mesh, self.state)
+        except NumericalError:
+            status = "numerical failure"
+            self.state = watch.good if model.flow is not None else self.state
+            with self.times.stage("output"):   # the last good state is written first
+                writers.write(self.state)
+            raise
+        finally:
+            total = wallclock.perf_counter() - started
+            progress.update(self.state.step, self.state.time, force=True)
+            seconds = {"total": total, "setup": setup_seconds, **self.times.seconds}
+            io.write_summary(self.comm, output, reporting.summary(model, self.state, status, seconds))
+        if stop is not None:
+            raise stop
+
+
+GROWTH = 1.25   # an adaptive step grows only when it can grow by this factor: each new dt reassembles
+                # the momentum matrices
+
+
+def next_time_step(model: Model, state: RunState, until: float) -> float:
+    """Collective (adaptive). The size of the next step: [run] dt (the last step shorter, to end at
+    end_time); or, with [run] adaptive_cfl c, the largest dt ≤ [run] dt that keeps the flow's CFL
+    number at c and the particles' travel per step at c cells (without a flow: c radii), changed
+    only when it must shrink or can grow by GROWTH (at most doubling), and never past ``until``
+    (the next output, checkpoint or the end), which it reaches in two even steps rather than a
+    long one and a sliver."""
+    run = model.case.run
+    if not run.adaptive_cfl:
+        return min(run.dt, run.end_time - state.time)
+    limit, target = run.dt, run.adaptive_cfl
+    length = float(state.particles.radius.min(initial=np.inf))
+    if model.flow is not None:
+        flow = model.flow
+        h = float(flow.h[:model.mesh.n_owned_cells].min(initial=np.inf))
+        speed = float(np.linalg.norm(flow.u_fixed, axis=1).max(initial=0.0))
+        rate = max(float(flow.convective_rates(state.fluid).max(initial=0.0)), speed / h)
+        rate, length = model.comm.allreduce(rate, op=MPI.MAX), model.comm.allreduce(h, op=MPI.MIN)
+        limit = min(limit, target / rate) if rate > 0 else limit
+    speed = float(np.linalg.norm(state.particles.v, axis=1).max(initial=0.0))
+    if speed > 0:
+        limit = min(limit, target * length / speed)
+    last = state.dt
+    dt = limit
+    if 0 < last <= limit:
+        dt = last if limit < GROWTH * last else min(limit, 2 * last)
+    left = until - state.time
+    if dt >= left * (1 - 1e-9):
+        return left
+    return left / 2 if dt > left / 2 else dt
+
+
+def stop_message(state: RunState, signal_number: int, output: Path) -> str:
+    return (f"stopped by {signal.Signals(signal_number).name} after step {state.step}, t = {state.time:.6g} s; "
+            f"the state is in {output / 'checkpoint.h5'} (continue with --restart)")
+
+
+@dataclass(frozen=True)
+class FlowWatch:
+    """What the run keeps to judge the flow: the latest state whose CFL number was within the
+    stable range (written if the flow diverges later), the largest CFL number of such states and
+    the boundary velocities', and whether the run has warned of a large one."""
+
+    good: RunState
+    stable_cfl: float = 0.0
+    warned: bool = False
+
+
+STABLE_CFL = 2.0      # × [run] max_cfl: a state below it is kept as the last good one
+DIVERGED_CFL = 10.0   # × [run] max_cfl: above it the explicit convection is blowing up: stop
+
+
+def watch_flow(model: Model, state: RunState, dt: float, watch: FlowWatch) -> FlowWatch:
+    """Collective (with a flow). The CFL number after a step: warned of above [run] max_cfl, kept
+    as the last good state below STABLE_CFL × max_cfl, and above DIVERGED_CFL × max_cfl (or not
+    finite) the run stops: NumericalError naming the step, time, cell and remedy."""
+    if model.flow is None:
+        return replace(watch, good=state)
+    limit = model.case.run.max_cfl
+    cfl, where = model.flow.largest_cfl(state.fluid, dt)
+    if cfl > DIVERGED_CFL * limit:
+        good = watch.good
+        suggestion = dt * limit / max(watch.stable_cfl, limit)
+        raise NumericalError(
+            f"step {state.step}, t = {state.time:.6g} s: the flow is diverging: CFL number {cfl:.3g} in the cell "
+            f"at ({where[0]:.4g}, {where[1]:.4g}, {where[2]:.4g}) (stopped above {DIVERGED_CFL * limit:g}); "
+            f"reduce [run] dt (to {suggestion:.3g} s or less) or use convection = \"upwind\"; written: the last "
+            f"state with CFL ≤ {STABLE_CFL * limit:g}, step {good.step}, t = {good.time:.6g} s")
+    if cfl > limit and not watch.warned:
+        reporting.warn_once(model.comm, f"step {state.step}: CFL number {cfl:.2f} in the cell at ({where[0]:.4g}, "
+                                        f"{where[1]:.4g}, {where[2]:.4g}) exceeds [run] max_cfl = {limit:g}; the "
+                                        "explicit convection may go unstable: reduce [run] dt")
+        watch = replace(watch, warned=True)
+    if cfl <= STABLE_CFL * limit:
+        watch = replace(watch, good=state, stable_cfl=max(watch.stable_cfl, cfl))
+    return watch
 
 
 def run_from_arguments(comm, arguments) -> None:
     """Collective. Everything ``python -m pmpm`` does after parsing the command line."""
     case = load_case(case_path(arguments.case), arguments.set)
     output = Path(arguments.output) if arguments.output else case.folder / "output"
+    checks.before_building(comm, case)
     restart = checkpoint.read(comm, Path(arguments.restart)) if arguments.restart else None
     start = wallclock.perf_counter()
     mesh = build_mesh(comm, case)
     check_boundaries(case, mesh)
     simulation = Simulation(comm, case, mesh, quiet=arguments.quiet)
     if restart is not None:
-        checkpoint.restore(comm, restart, mesh, simulation, Path(arguments.restart))
-        print0(comm, f"pmpm: restarting from {arguments.restart} at t = {simulation.time:g} s, step {simulation.step}")
+        simulation.state = checkpoint.restore(comm, restart, simulation.model, simulation.state,
+                                              Path(arguments.restart))
+        print0(comm, f"pmpm: restarting from {arguments.restart} at t = {simulation.state.time:g} s, "
+                     f"step {simulation.state.step}")
+    writes = checks.before_running(comm, simulation.model, simulation.state, output, arguments.restart)
     setup_seconds = wallclock.perf_counter() - start
-    print0(comm, simulation.describe(setup_seconds))
+    print0(comm, reporting.describe(simulation.model, simulation.state, setup_seconds))
+    print0(comm, writes)
     if arguments.check:
         return
     moved = io.prepare_output_folder(comm, output.resolve())
     if moved is not None:
         print0(comm, f"pmpm: the earlier results in {output} were kept as {moved}")
     simulation.run(output.resolve(), setup_seconds)
-
-
-class Simulation:
-    """The pieces a case asks for, and the time loop over them. Collective."""
-
-    def __init__(self, comm, case: Case, mesh: Mesh, quiet: bool = False):
-        self.comm, self.case, self.mesh, self.quiet = comm, case, mesh, quiet
-        self.times = StageTimes()
-        self.time, self.step = 0.0, 0
-        self.removed = 0  # particles that left the domain
-        self.collision_totals = {}  # summed collision statistics (pmpm.collisions.advance_with_collisions)
-        self.particles = ParticleState.empty()
-        self.injectors = build_injectors(case)
-        self.walls = build_walls(case, mesh) if (case.collisions or case.field_forces or case.deposition) else None
-        self.settings = collision_settings(case) if case.collisions else None
-        self.contact_memory = None  # the contact solver's impulses from the last step (ContactMemory)
-        self.flow = self.fluid_state = self.coupling = None
-        self.fluid_density = 0.0
-        if case.fluid is not None:
-            self.fluid_density = case.fluid.density
-            self.flow = FlowSolver(mesh, case.fluid, case.boundaries)
-            self.fluid_state = self.flow.initial_state()
-            self.coupling = Coupling(mesh, case.coupling, case.fluid.density, case.fluid.viscosity)
-            self.volume_fraction = np.zeros(mesh.n_local_cells)
-            self.flow_knows_id = -1   # particles with larger ids have not been in the flow yet
-            self.cfl_warned = False
-        self.hydro_force = np.zeros((0, 3))
-        self.hydro_torque = np.zeros((0, 3))
-        start = initial_particles(case)
-        self.add_particles(start, validate=True)
-
-    # -- particles ------------------------------------------------------------------------------
-    def add_particles(self, new, validate: bool = False) -> None:
-        """Collective. Append particles (identically on every rank), checked against the domain."""
-        if len(new) == 0:
-            return
-        inside = self.inside_domain(new.x)
-        if validate:
-            check_initial_particles(self.case, new, inside, self.walls)
-        keep = inside
-        if not validate:  # injected: skip releases outside the domain or onto other particles
-            keep &= ~overlaps_existing(self.particles, new)
-        ids = self.next_id() + np.arange(int(keep.sum()))
-        self.particles.append(ids, new.x[keep], new.v[keep], new.omega[keep], new.radius[keep],
-                              new.density[keep], new.motion[keep])
-
-    def next_id(self) -> int:
-        return int(self.particles.id.max()) + 1 if len(self.particles.id) else self._first_free_id
-
-    _first_free_id = 0
-
-    def inside_domain(self, points: np.ndarray) -> np.ndarray:
-        """Collective. True where a point lies in some rank's owned cells."""
-        found = (self.mesh.find_owned_cells(points) >= 0).astype(np.int64)
-        return allreduce_sum(self.comm, found) > 0
-
-    # -- the loop -------------------------------------------------------------------------------
-    def run(self, output: Path, setup_seconds: float) -> None:
-        """Collective. Run to end_time (or the wall-time limit), writing outputs on the way."""
-        run = self.case.run
-        with_fluid = self.flow is not None
-        self.particle_writer = io.ParticleWriter(self.comm, output, with_fluid)
-        self.field_writer = io.FieldWriter(self.comm, output, self.mesh, with_fluid)
-        progress = Progress(self.comm, run.end_time, self.quiet, start_time=self.time)
-        started = wallclock.perf_counter()
-        self.write_outputs()
-        next_output = (math.floor(self.time / run.output_every + 1e-9) + 1) * run.output_every
-        every = run.checkpoint_every
-        next_checkpoint = (math.floor(self.time / every + 1e-9) + 1) * every if every else math.inf
-        status = "completed"
-        checkpoint_time = self.time
-        try:
-            while self.time < run.end_time * (1 - 1e-12):
-                dt = min(run.dt, run.end_time - self.time)
-                self.keep_last_good_state()
-                self.advance(dt)
-                if self.time >= next_output * (1 - 1e-9) or self.time >= run.end_time * (1 - 1e-12):
-                    with Timer(self.times, "output"):
-                        self.write_outputs()
-                    while next_output <= self.time * (1 + 1e-9):
-                        next_output += run.output_every
-                if self.time >= next_checkpoint * (1 - 1e-9):
-                    with Timer(self.times, "checkpoint"):
-                        checkpoint.write(self.comm, output, self.mesh, self)
-                    checkpoint_time = self.time
-                    while next_checkpoint <= self.time * (1 + 1e-9):
-                        next_checkpoint += every
-                progress.update(self.step, self.time, f"  particles {len(self.particles.id)}")
-                if run.wall_time_limit and wallclock.perf_counter() - started > run.wall_time_limit:
-                    status = "stopped at the wall-time limit"
-                    self.write_outputs()
-                    break
-            if every and checkpoint_time != self.time:  # the final state, for a later continuation
-                with Timer(self.times, "checkpoint"):
-                    checkpoint.write(self.comm, output, self.mesh, self)
-        except NumericalError:
-            status = "numerical failure"
-            self.restore_last_good_state()   # SPEC §2: the last good state is written first
-            with Timer(self.times, "output"):
-                self.write_outputs()
-            raise
-        finally:
-            total = wallclock.perf_counter() - started
-            progress.update(self.step, self.time, force=True)
-            io.write_summary(self.comm, output, self.summary(status, setup_seconds, total))
-
-    def advance(self, dt: float) -> None:
-        """Collective. One time step, stage by stage (ARCHITECTURE.md)."""
-        case = self.case
-        # 1. inject new particles
-        if self.injectors:
-            with Timer(self.times, "injection"):
-                new = [injector.due(self.time + dt) for injector in self.injectors]
-                self.add_particles(NewParticles.concatenate(new))
-        state = self.particles
-        # 6 (needed by the coupled update). gravity with buoyancy, field forces
-        with Timer(self.times, "forces"):
-            force = gravity_buoyancy(state, np.array(case.run.gravity), self.fluid_density)
-            if case.field_forces is not None:
-                force += field_forces_of_case(state, self.walls, case.field_forces)
-        torque = np.zeros_like(force)
-        if self.flow is not None:
-            force, torque = self.flow_step(dt, force, torque)
-        # 7. update V and ω, then move, with collisions resolved in time order
-        substeps = case.coupling.substeps if self.flow is not None else 1
-        for _ in range(substeps):
-            with Timer(self.times, "collisions" if self.settings else "motion"):
-                accelerate(state, force, torque, dt / substeps)
-                if self.settings is not None:
-                    result = advance_with_collisions(state, self.walls, dt / substeps, self.settings,
-                                                     self.contact_memory)
-                    self.walls, self.contact_memory = result.walls, result.memory
-                    for key, value in result.stats.items():
-                        self.collision_totals[key] = self.collision_totals.get(key, 0) + int(value)
-                else:
-                    free = state.motion != 1
-                    state.x[free] += state.v[free] * dt / substeps
-        # 8. particles that left the domain are removed
-        with Timer(self.times, "owners"):
-            if len(state):
-                outside = ~self.inside_domain(state.x)
-                if outside.any():
-                    self.removed += int(outside.sum())
-                    state.remove(outside)
-                    if len(self.hydro_force) == len(outside):  # empty without [fluid]
-                        self.hydro_force, self.hydro_torque = self.hydro_force[~outside], self.hydro_torque[~outside]
-        self.time += dt
-        self.step += 1
-        check_finite(state, self.step, self.time)
-
-    def flow_step(self, dt: float, force: np.ndarray, torque: np.ndarray):
-        """Collective. Steps 2–5: locate, flow with the particles' patch, drag and torque.
-        Returns the total force and torque on each particle (external + hydrodynamic)."""
-        state, coupling = self.particles, self.coupling
-        with Timer(self.times, "coupling"):
-            touched = coupling.locate(state)
-            fresh = state.id > self.flow_knows_id
-            if fresh.any():   # same on every rank: the particles are replicated
-                coupling.carry_fluid(state, touched, self.fluid_state.u, fresh)
-                self.mesh.update_ghosts(self.fluid_state.u)
-                self.flow_knows_id = int(state.id.max())
-            if len(state):
-                coupling.begin_step(state, touched, self.fluid_state.u)
-        hydro = {}
-
-        def patch(u_star, last):
-            with Timer(self.times, "coupling"):
-                result = coupling.exchange(state, touched, u_star, dt, force, torque, last, self.step, self.time)
-                if last:
-                    hydro["force"], hydro["torque"] = result
-
-        def penalty():
-            with Timer(self.times, "coupling"):
-                return coupling.penalty_terms(state, touched)
-
-        with Timer(self.times, "flow"):
-            info = self.flow.step(self.fluid_state, dt, patch=patch if len(state) else None,
-                                  forcing_iterations=self.case.coupling.forcing_passes,
-                                  step=self.step, time=self.time,
-                                  penalty=penalty if len(state) and coupling.penalty and coupling.two_way else None)
-        self.pressure_iterations = getattr(self, "pressure_iterations", 0) + info["pressure_iterations"]
-        self.volume_fraction[:self.mesh.n_owned_cells] = coupling.volume_fraction(touched)
-        self.flow.check(self.fluid_state, self.step, self.time)
-        if not self.cfl_warned and self.step % 10 == 0:
-            cfl = self.flow.cfl(self.fluid_state, dt)
-            if cfl > self.case.run.max_cfl:
-                if self.comm.rank == 0:
-                    warn(self.comm, f"step {self.step}: CFL number {cfl:.2f} exceeds [run] max_cfl = "
-                                    f"{self.case.run.max_cfl:g}; the explicit convection may go unstable: reduce [run] dt")
-                self.cfl_warned = True
-        if not len(state):
-            return force, torque
-        self.hydro_force, self.hydro_torque = hydro["force"], hydro["torque"]
-        return force + hydro["force"], torque + hydro["torque"]
-
-    def keep_last_good_state(self) -> None:
-        """Copies of the state at the start of the step, written if the step fails."""
-        fluid = self.fluid_state
-        self.last_good = (self.time, self.step, copy.deepcopy(self.particles),
-                          None if fluid is None else copy.deepcopy(fluid), self.hydro_force, self.hydro_torque)
-
-    def restore_last_good_state(self) -> None:
-        (self.time, self.step, self.particles, self.fluid_state,
-         self.hydro_force, self.hydro_torque) = self.last_good
-
-    def write_outputs(self) -> None:
-        """Collective. One output time: particles.csv rows and a fields.h5 group."""
-        state = self.particles
-        fields = {}
-        if self.flow is not None:
-            if len(self.hydro_force) != len(state):
-                self.hydro_force, self.hydro_torque = np.zeros((len(state), 3)), np.zeros((len(state), 3))
-            fields = {"velocity": self.fluid_state.u, "pressure": self.fluid_state.p,
-                      "volume_fraction": self.volume_fraction}
-        self.particle_writer.write(self.time, state, self.hydro_force, self.hydro_torque)
-        arrays = {"id": state.id, "position": state.x, "velocity": state.v, "angular_velocity": state.omega,
-                  "radius": state.radius, "density": state.density}
-        self.field_writer.write(self.time, fields, arrays)
-
-    # -- reporting ------------------------------------------------------------------------------
-    def describe(self, setup_seconds: float) -> str:
-        case, mesh = self.case, self.mesh
-        run = case.run
-        steps = math.ceil(run.end_time / run.dt - 1e-9)
-        return "\n".join([
-            f"pmpm: case {case.path}",
-            f"  models:    {', '.join(case.models()) or 'none'}",
-            f"  mesh:      {mesh.describe()}",
-            f"  particles: {len(self.particles.id)} at start, {len(self.injectors)} injection(s)",
-            f"  ranks:     {self.comm.size}",
-            f"  time:      0 → {run.end_time:g} s, dt = {run.dt:g} s ({steps} steps), output every {run.output_every:g} s",
-            *([self.describe_flow()] if self.flow is not None else []),
-            f"  setup:     {setup_seconds:.2f} s",
-        ])
-
-    def describe_flow(self) -> str:
-        """One line on the flow, with the CFL number the boundary velocities give (warns above max_cfl)."""
-        fluid, flow, run = self.case.fluid, self.flow, self.case.run
-        speed = float(np.linalg.norm(flow.u_fixed, axis=1).max(initial=0.0))
-        h = float(flow.h.min(initial=np.inf))
-        cfl = self.comm.allreduce(speed * run.dt / h, op=MPI.MAX)
-        if cfl > run.max_cfl and self.comm.rank == 0:
-            warn(self.comm, f"[run] dt = {run.dt:g} s gives a CFL number of {cfl:.2f} at the boundary velocities "
-                            f"(above max_cfl = {run.max_cfl:g}); the explicit convection may go unstable")
-        # the paper's patch makes the particle forces depend on ν dt/h² (docs/coupling.md): say it
-        diffusion = self.comm.allreduce(fluid.viscosity / fluid.density * run.dt / h ** 2, op=MPI.MAX)
-        if diffusion > 1 and (len(self.particles.id) or self.injectors) and self.comm.rank == 0:
-            warn(self.comm, f"[run] dt = {run.dt:g} s gives ν dt/h² = {diffusion:.3g}: above 1 the drag on moving "
-                            "particles falls with dt (−3 % at 1.6, −6 % at 4, −15 % at 16 in creeping flow, "
-                            "docs/coupling.md); a smaller dt keeps it")
-        return (f"  flow:      ρ = {fluid.density:g} kg/m³, μ = {fluid.viscosity:g} Pa s, {fluid.convection} "
-                f"convection, CFL at boundary speeds {cfl:.2f}, ν dt/h² {diffusion:.3g}; coupling "
-                f"{self.case.coupling.mode}, {self.case.coupling.forcing} forcing, "
-                f"{self.case.coupling.volume_fraction} volume fraction, {self.case.coupling.update} update, "
-                f"{self.case.coupling.forcing_passes} forcing passes")
-
-    def summary(self, status: str, setup_seconds: float, total_seconds: float) -> dict:
-        state = self.particles
-        return {
-            "case": str(self.case.path), "status": status, "ranks": self.comm.size,
-            "cells": self.mesh.n_global_cells, "particles": len(state.id), "particles_removed": self.removed,
-            "steps": self.step, "simulated_time": self.time, "models": self.case.models(),
-            "wall_seconds": {"total": total_seconds, "setup": setup_seconds, **self.times.seconds},
-            "diagnostics": self.diagnostics(),
-        }
-
-    def diagnostics(self) -> dict:
-        """Collective. Conservation checks for summary.json."""
-        state = self.particles
-        result = {"particle_kinetic_energy": 0.5 * float(np.sum(state.mass * np.sum(state.v ** 2, axis=1))),
-                  "particle_momentum": (state.mass[:, None] * state.v).sum(axis=0)}
-        if self.settings is not None:
-            result["collisions"] = dict(self.collision_totals)
-        if self.flow is not None:
-            flow, fluid = self.flow, self.fluid_state
-            owned = slice(0, self.mesh.n_owned_cells)
-            momentum = self.fluid_density * (self.mesh.cell_volume[owned, None] * fluid.u[owned]).sum(axis=0)
-            fluxes = flow.boundary_flux(fluid)
-            result.update({
-                "fluid_kinetic_energy": flow.kinetic_energy(fluid),
-                "fluid_momentum": allreduce_sum(self.comm, momentum),
-                "max_divergence_per_second": flow.divergence_norm(fluid),
-                "boundary_volume_flux": fluxes,
-                "net_volume_flux": sum(fluxes.values()),
-                "pressure_iterations": getattr(self, "pressure_iterations", 0),
-                "final_cfl": flow.cfl(fluid, self.case.run.dt),
-            })
-        return result
-
-
-def check_finite(state, step: int, time: float) -> None:
-    """Raise NumericalError naming the first particle whose state is not finite."""
-    bad = ~np.isfinite(state.x).all(axis=1) | ~np.isfinite(state.v).all(axis=1)
-    if bad.any():
-        pid = int(state.id[np.argmax(bad)])
-        raise NumericalError(f"step {step}, t = {time:.6g} s: particle {pid} has a non-finite position or "
-                             "velocity; reduce [run] dt")

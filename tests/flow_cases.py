@@ -55,7 +55,7 @@ def cavity_solver(comm, n: int, cell_type: str = "hex", re: float = 100.0, depth
 def run(solver, dt: float, steps: int, state=None):
     state = solver.initial_state() if state is None else state
     for n in range(steps):
-        solver.step(state, dt, step=n, time=n * dt)
+        state = solver.step(state, dt, step=n, time=n * dt)
     return state
 
 

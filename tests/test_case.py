@@ -94,3 +94,41 @@ def test_override_applies_to_raw_table():
     raw = {"run": {"dt": 1.0}}
     apply_override(raw, "run.dt=0.5", "case.toml")
     assert raw["run"]["dt"] == 0.5
+
+
+@pytest.mark.parametrize("change, message", [
+    (("end_time = 1.0", "end_time = inf"), "[run] end_time = inf: must be a finite number (s)"),
+    (("viscosity = 1e-3", "viscosity = inf"), "[fluid] viscosity = inf: must be a finite number (Pa s)"),
+    (("dt = 1e-3", "dt = 1e-300"), "[run] dt = 1e-300 s is too small for end_time = 1 s"),
+    (("[[particles.add]]", '[[injection]]\nkind = "random"\nlower = [0, 0, 0.1]\nupper = [0.1, 0.1, 0.05]\n'
+      'interval = 0.1\nradius = 0.001\ndensity = 1.0\n[[particles.add]]'),
+     "[[injection]] #0: lower = [0.0, 0.0, 0.1] must not exceed upper = [0.1, 0.1, 0.05] in any direction"),
+])
+def test_values_that_cannot_run_are_refused(tmp_path, change, message):
+    with pytest.raises(CaseError) as error:
+        load_case(write_case(tmp_path, BASE.replace(*change, 1)))
+    assert message in str(error.value) and "\n" not in str(error.value)
+
+
+def test_injection_may_stop_never(tmp_path):
+    text = BASE + '[[injection]]\nposition = [0.05, 0.05, 0.1]\ninterval = 0.1\nradius = 0.001\ndensity = 1.0\nstop = inf\n'
+    assert load_case(write_case(tmp_path, text)).injections[0].stop == float("inf")
+
+
+@pytest.mark.parametrize("override, message", [
+    ("run.dt=abc", "--set run.dt=abc: must be a number (s)"),
+    ("run.end_time=inf", "--set run.end_time=inf: must be a finite number (s)"),
+    ("fluid.viscosity=-1", "--set fluid.viscosity=-1: must be > 0 (Pa s)"),
+    ("mesh.box.cells=[4,4]", "--set mesh.box.cells=[4,4]: must be three integers [nx, ny, nz]"),
+    ('boundary.xmax.type="outflow"', '--set boundary.xmax.type="outflow": must be one of'),
+])
+def test_bad_set_value_is_blamed_on_set_not_the_file(tmp_path, override, message):
+    with pytest.raises(CaseError) as error:
+        load_case(write_case(tmp_path), [override])
+    assert str(error.value).startswith(message) and "case.toml" not in str(error.value)
+
+
+def test_byte_order_mark_is_accepted(tmp_path):
+    path = tmp_path / "case.toml"
+    path.write_bytes(b"\xef\xbb\xbf" + BASE.encode())
+    assert load_case(path).fluid.viscosity == 1e-3

@@ -1,4 +1,4 @@
-"""The command line on 2 ranks: every SPEC §2 bad input exits 2 with one line on stderr, no
+"""The command line on 2 ranks: every bad input of the README's list exits 2 with one line on stderr, no
 traceback, no hang; results are never overwritten; --set and --check work."""
 import json
 import subprocess

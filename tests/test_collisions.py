@@ -20,13 +20,11 @@ G = 9.81
 def particles(x, v=None, radius=0.01, density=1000.0, omega=None, motion=None) -> ParticleState:
     x = np.array(x, float).reshape(-1, 3)
     n = len(x)
-    state = ParticleState.empty()
-    state.append(np.arange(n), x, np.zeros((n, 3)) if v is None else np.array(v, float).reshape(n, 3),
+    return ParticleState.empty().appended(np.arange(n), x, np.zeros((n, 3)) if v is None else np.array(v, float).reshape(n, 3),
                  np.zeros((n, 3)) if omega is None else np.array(omega, float).reshape(n, 3),
                  np.broadcast_to(np.asarray(radius, float), n).copy(),
                  np.broadcast_to(np.asarray(density, float), n).copy(),
                  np.zeros(n, np.int8) if motion is None else np.asarray(motion, np.int8))
-    return state
 
 
 def rectangle(origin, edge1, edge2, **kwargs) -> Walls:
@@ -45,17 +43,23 @@ def kinetic(state) -> float:
                  + 0.5 * np.sum(state.inertia * np.sum(state.omega ** 2, 1)))
 
 
+def step_under_gravity(state, walls, dt, settings, memory=None, gravity=(0.0, 0.0, -G)):
+    """What the time loop does: v += g dt for the free particles, then move with collisions (the
+    contact solver's ``memory`` from the last step). Returns the ContactStep."""
+    state.v[state.movable] += np.asarray(gravity) * dt
+    return advance_with_collisions(state, walls, dt, settings, memory)
+
+
 class TimeLoop:
     """What the time loop does each step: v += g dt for the free particles, then move with
     collisions, the contact memory and the (moved) walls carried to the next step."""
 
     def __init__(self, walls, dt, settings, gravity=(0.0, 0.0, -G)):
-        self.walls, self.dt, self.settings, self.gravity = walls, dt, settings, np.asarray(gravity)
+        self.walls, self.dt, self.settings, self.gravity = walls, dt, settings, gravity
         self.memory = None
 
     def step(self, state) -> dict:
-        state.v[state.movable] += self.gravity * self.dt
-        result = advance_with_collisions(state, self.walls, self.dt, self.settings, self.memory)
+        result = step_under_gravity(state, self.walls, self.dt, self.settings, self.memory, self.gravity)
         self.walls, self.memory = result.walls, result.memory
         return result.stats
 
@@ -194,9 +198,9 @@ def test_bouncing_ball_rebound_heights():
     state = particles([[0, 0, 0.3 + r]], radius=r)
     walls, settings = floor(restitution=e), CollisionSettings(rest_speed=3 * G * dt)
     apexes, rising, top = [], False, 0.0
-    loop = TimeLoop(walls, dt, settings)
+    memory = None
     for _ in range(10000):
-        loop.step(state)
+        memory = step_under_gravity(state, walls, dt, settings, memory).memory
         if state.v[0, 2] > 0:
             rising, top = True, max(top, state.x[0, 2])
         elif rising:
@@ -212,9 +216,10 @@ def test_resting_ball_does_not_sink_or_gain_energy():
     state = particles([[0.1, 0.2, r]], radius=r)
     walls, settings = floor(restitution=0.9), CollisionSettings(rest_speed=3 * G * dt)
     lowest, highest, energy = r, r, 0.0
-    loop = TimeLoop(walls, dt, settings)
+    memory = None
     for _ in range(10000):
-        stats = loop.step(state)
+        result = step_under_gravity(state, walls, dt, settings, memory)
+        memory, stats = result.memory, result.stats
         lowest, highest = min(lowest, state.x[0, 2]), max(highest, state.x[0, 2])
         energy = max(energy, kinetic(state))
         assert not stats["capped"]
@@ -235,9 +240,10 @@ def test_resting_column_and_bed():
     start = state.x.copy()
     walls = floor(restitution=0.9, friction=0.5)
     settings = CollisionSettings(restitution=0.9, friction=0.5, rest_speed=3 * G * dt)
-    loop = TimeLoop(walls, dt, settings)
+    memory = None
     for _ in range(2000):
-        stats = loop.step(state)
+        result = step_under_gravity(state, walls, dt, settings, memory)
+        memory, stats = result.memory, result.stats
     dist = np.linalg.norm(state.x[:, None] - state.x[None], axis=2) + np.eye(len(state)) * 1e9
     assert dist.min() > 2 * r * (1 - 1e-6)
     assert state.x[:, 2].min() > r * (1 - 2e-6)
@@ -258,9 +264,10 @@ def test_ball_dropped_on_a_resting_column():
         return kinetic(state) + G * float(state.mass @ state.x[:, 2])
 
     previous = energy()
-    loop = TimeLoop(walls, dt, settings)
+    memory = None
     for _ in range(600):
-        stats = loop.step(state)
+        result = step_under_gravity(state, walls, dt, settings, memory)
+        memory, stats = result.memory, result.stats
         now = energy()
         assert now <= previous + 1e-12 * abs(previous)
         previous = now
@@ -301,9 +308,10 @@ def test_pile_in_a_box_loses_energy():
         return kinetic(state) + G * float(state.mass @ state.x[:, 2])
 
     previous = start = energy()
-    loop = TimeLoop(walls, dt, settings)
+    memory = None
     for _ in range(500):
-        stats = loop.step(state)
+        result = step_under_gravity(state, walls, dt, settings, memory)
+        memory, stats = result.memory, result.stats
         now = energy()
         assert now <= previous + 1e-9 * abs(previous)
         previous = now
@@ -326,9 +334,9 @@ def test_rolling_down_a_slope():
     start = -0.05 * down + r * normal + np.array([0, 0.02, 0])
     state = particles([start], radius=r)
     settings = CollisionSettings(rest_speed=3 * G * dt)
-    loop = TimeLoop(walls, dt, settings)
+    memory = None
     for _ in range(2000):
-        loop.step(state)
+        memory = step_under_gravity(state, walls, dt, settings, memory).memory
         assert abs((state.x[0] - walls.a[0]) @ normal - r) < 1e-6 * 2 * r
     t = 2000 * dt
     speed = state.v[0] @ down
@@ -343,9 +351,9 @@ def test_rolling_friction_deceleration():
     state = particles([[-0.5, 0, r]], [[v0, 0, 0]], radius=r, omega=[[0, v0 / r, 0]])
     walls = floor(restitution=0.5, friction=0.5, rolling_friction=mu_r)
     settings = CollisionSettings(rest_speed=3 * G * dt)
-    loop = TimeLoop(walls, dt, settings)
+    memory = None
     for _ in range(5000):
-        loop.step(state)
+        memory = step_under_gravity(state, walls, dt, settings, memory).memory
     t = 5000 * dt
     assert (v0 - state.v[0, 0]) / t == pytest.approx(5 / 7 * mu_r * G, rel=0.01)
     assert state.omega[0, 1] * r == pytest.approx(state.v[0, 0], rel=1e-9)
@@ -459,9 +467,10 @@ def test_dense_bed_rests():
     state = particles(x, radius=r)
     walls = box(side, 0.5, restitution=0.5, friction=0.5)
     settings = CollisionSettings(restitution=0.5, friction=0.5, rest_speed=3 * G * dt)
-    loop = TimeLoop(walls, dt, settings)
+    memory = None
     for _ in range(200):
-        stats = loop.step(state)
+        result = step_under_gravity(state, walls, dt, settings, memory)
+        memory, stats = result.memory, result.stats
         assert stats["dense_steps"] == 1 and not stats["capped"]
     assert np.abs(state.x - x).max() < 1e-3 * 2 * r
     pairs = np.linalg.norm(state.x[:, None] - state.x[None], axis=2) + np.eye(len(x))

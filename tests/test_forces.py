@@ -11,11 +11,9 @@ from pmpm.particles import ParticleState, accelerate
 def particles(x, radius=0.01, density=1000.0, v=None) -> ParticleState:
     x = np.array(x, float).reshape(-1, 3)
     n = len(x)
-    state = ParticleState.empty()
-    state.append(np.arange(n), x, np.zeros((n, 3)) if v is None else np.array(v, float),
-                 np.zeros((n, 3)), np.broadcast_to(np.asarray(radius, float), n).copy(),
-                 np.broadcast_to(np.asarray(density, float), n).copy(), np.zeros(n, np.int8))
-    return state
+    return ParticleState.empty().appended(np.arange(n), x, np.zeros((n, 3)) if v is None else np.array(v, float),
+                                          np.zeros((n, 3)), np.broadcast_to(np.asarray(radius, float), n).copy(),
+                                          np.broadcast_to(np.asarray(density, float), n).copy(), np.zeros(n, np.int8))
 
 
 def box_floor_and_wall() -> Walls:

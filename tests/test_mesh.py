@@ -6,7 +6,7 @@ import pytest
 from mpi4py import MPI
 
 from pmpm.errors import CaseError
-from pmpm.mesh import FROM_VTK, Mesh, box_tetrahedra
+from pmpm.mesh import VTK_ORDER, Mesh, box_tetrahedra
 
 LOWER, UPPER, CELLS = np.array([0.0, 0.0, 0.0]), np.array([1.0, 2.0, 3.0]), (4, 3, 5)
 SHEAR = 0.3  # the gmsh test mesh is the box sheared by x += SHEAR z: same volume, planar faces
@@ -42,7 +42,7 @@ def write_gmsh(path, cell_type):
         surface_type = "quad"
     else:
         xyz, petsc = box_tetrahedra(LOWER, UPPER, CELLS)
-        volume = petsc[:, np.argsort(FROM_VTK["tet"])]
+        volume = petsc[:, np.argsort(VTK_ORDER["tet"])]
         block = "tetra"
         faces = volume[:, [[0, 1, 2], [0, 1, 3], [0, 2, 3], [1, 2, 3]]]
         surface_type = "triangle"
@@ -156,3 +156,25 @@ def test_bad_mesh_files(tmp_path):
     meshio.write(str(tmp_path / "surface.msh"), surface, file_format="gmsh22", binary=False)
     with pytest.raises(CaseError, match="no hexahedra or tetrahedra"):
         Mesh.from_file(MPI.COMM_SELF, tmp_path / "surface.msh")
+    with pytest.raises(CaseError, match="is a folder, not a mesh file"):
+        Mesh.from_file(MPI.COMM_SELF, tmp_path)
+
+
+@pytest.mark.mpi
+def test_gmsh_file_whose_only_physical_group_is_a_volume(comm, shared_tmp):
+    """gmsh writes only the elements of physical groups: with a volume group alone, the file has no
+    surfaces, and every boundary face is the unnamed "boundary" (a fixed wall)."""
+    path = shared_tmp / "volume_only.msh"
+    if comm.rank == 0:
+        write_gmsh(path, "hex")
+        full = meshio.read(str(path))
+        volume = [i for i, block in enumerate(full.cells) if block.type == "hexahedron"][0]
+        only = meshio.Mesh(full.points, [full.cells[volume]],
+                           cell_data={k: [v[volume]] for k, v in full.cell_data.items()},
+                           field_data={"fluid": np.array([10, 3])})
+        meshio.write(str(path), only, file_format="gmsh22", binary=False)
+    comm.Barrier()
+    mesh = Mesh.from_file(comm, path)
+    assert mesh.boundary_names == ["boundary"]
+    # the whole surface of the sheared box: the tilted x faces and the walls of test_gmsh_file
+    assert mesh.boundary_area()["boundary"] == pytest.approx(2 * 2.0 * 3.0 * np.hypot(1.0, SHEAR) + 10.0, rel=1e-12)

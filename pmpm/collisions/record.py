@@ -69,7 +69,8 @@ class ContactRecord:
 
 @dataclass
 class ContactMemory:
-    """Impulses of the last step's contacts that pushed, by particle ids (SI).
+    """Impulses of the last step's contacts, by particle ids (SI): every contact a dense step
+    solved, the contacts that pushed in an event step.
 
     first_id : (k,) int64, the contact's particle with the smaller id (the normal points to it).
     second_id : (k,) int64, the other particle's id, or −1 − triangle for a wall.
@@ -101,8 +102,13 @@ class ContactMemory:
                    np.asarray(arrays["normal_impulse"], float).reshape(-1),
                    np.asarray(arrays["tangential_impulse"], float).reshape(-1, 3))
 
+    @property
+    def keys(self) -> np.ndarray:
+        """(k,) int64, one key per contact remembered, ascending (``key_of``)."""
+        return self.key_of(self.first_id, self.second_id)
+
     @staticmethod
-    def keys(first_id: np.ndarray, second_id: np.ndarray) -> np.ndarray:
+    def key_of(first_id: np.ndarray, second_id: np.ndarray) -> np.ndarray:
         """One int64 per contact, ordered as (first_id, second_id)."""
         if len(first_id) and (first_id.max() >= ID_LIMIT or second_id.max() >= ID_LIMIT):
             raise ValueError("particle ids must be below 2^31 for the contact memory")
@@ -121,8 +127,8 @@ class ContactMemory:
         normal, tangential = np.zeros(m), np.zeros((m, 3))
         if len(self) == 0 or m == 0:
             return normal, tangential
-        stored = self.keys(self.first_id, self.second_id)
-        now = self.keys(*self.ids_of(record, ids))
+        stored = self.keys
+        now = self.key_of(*self.ids_of(record, ids))
         at = np.minimum(np.searchsorted(stored, now), len(stored) - 1)
         found = stored[at] == now
         normal[found] = self.normal_impulse[at[found]]
@@ -131,11 +137,11 @@ class ContactMemory:
 
     @classmethod
     def remember(cls, record: ContactRecord, ids: np.ndarray, normal_impulse: np.ndarray,
-                 tangential_impulse: np.ndarray) -> "ContactMemory":
-        """The impulses of the record's contacts that pushed (λ_n > 0)."""
-        keep = normal_impulse > 0
+                 tangential_impulse: np.ndarray, keep: np.ndarray | None = None) -> "ContactMemory":
+        """The impulses of the record's contacts ``keep`` (default: those that pushed, λ_n > 0)."""
+        keep = normal_impulse > 0 if keep is None else keep
         first_id, second_id = cls.ids_of(record, ids)
         first_id, second_id = first_id[keep], second_id[keep]
-        order = np.argsort(cls.keys(first_id, second_id), kind="stable")
+        order = np.argsort(cls.key_of(first_id, second_id), kind="stable")
         return cls(first_id[order], second_id[order], normal_impulse[keep][order],
                    tangential_impulse[keep][order])

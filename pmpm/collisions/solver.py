@@ -150,7 +150,10 @@ def advance_with_collisions(state: ParticleState, walls: Walls | None, dt: float
     state.v[free] = bodies.v[:n][free]
     state.omega[:] = bodies.w[:n]
     state.deposited[:] = bodies.deposited[:n]
-    return ContactStep(as_dict(counters, extra), ContactMemory.remember(record, state.id, lam_n, lam_t), walls_after)
+    # a dense step remembers every contact it solved (a bed's unloaded ones too: the next step's
+    # start), an event step the contacts that pushed
+    memory = ContactMemory.remember(record, state.id, lam_n, lam_t, np.ones(len(record), bool) if dense else None)
+    return ContactStep(as_dict(counters, extra), memory, walls_after)
 
 
 def event_step(bodies, record, warm_n, warm_t, lam_n, lam_t, settings, dt, speed_bound, walls, kernels,

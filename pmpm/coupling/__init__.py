@@ -1,0 +1,45 @@
+"""Big particles in the flow (paper eq. 1–2, Figure 1): touched cells, volume fractions, the
+forcing that drives the fluid in them towards the particles' rigid motion, drag and torque.
+
+A cell is *touched* by a particle when one of its vertices lies in the sphere, and carries the
+particle's volume fraction α (``locate``). The fluid there is driven towards U = V + ω × r, and the
+momentum this takes from the particle is its drag and torque (r × F, r from the centre to the cell
+centre). Two forcings (``[coupling] forcing``), one class each with the same stages, chosen once
+when the case is built (``build_forcing``):
+
+- ``PenaltyForcing`` (default, ``penalty.py``): an implicit penalty solved with the diffusion;
+- ``PatchForcing`` (the paper, ``patch.py``): u ← (1 − α) u + α U after each solve.
+
+The time loop (``pmpm.simulation.flow_stage``) calls, in this order, each a value in, a value out:
+
+    touched = forcing.locate(particles)                           local
+    passes, fluid = forcing.begin(particles, touched, fluid, memory, dt)
+    per forcing pass:
+        diagonal, target = forcing.implicit_terms(particles, passes)      → the momentum solve
+        u_star, source, passes = forcing.after_solve(particles, passes, u_star, external, dt)
+        (source: momentum the forcing added to u*, for the right-hand side of a next solve)
+    exchange = forcing.after_projection(particles, passes, fluid, external, dt, memory, step, time)
+
+``passes`` carries the step's state from stage to stage; ``memory`` (``CouplingMemory``) what the
+coupling carries to the next step. The particle update (``[coupling] update``, implicit or
+explicit) is in ``update.py``. Parallel: each rank sums over its owned cells only; the
+per-particle sums meet in one Allreduce (``sums.py``), and every rank applies the same update to
+its copy of the particles. docs/coupling.md has the method's measurements.
+"""
+from __future__ import annotations
+
+from .locate import CellLocator, Touched, alpha_per_cell, shared_alpha, smooth_fraction, volume_fraction
+from .memory import CouplingMemory
+from .patch import PatchForcing
+from .penalty import PenaltyForcing
+from .update import Exchange, External
+
+__all__ = ["CellLocator", "CouplingMemory", "Exchange", "External", "PatchForcing", "PenaltyForcing", "Touched",
+           "alpha_per_cell", "build_forcing", "shared_alpha", "smooth_fraction", "volume_fraction"]
+
+
+def build_forcing(mesh, section, fluid) -> PenaltyForcing | PatchForcing:
+    """The forcing the case's [coupling] section asks for, on ``mesh``, for the [fluid] ``fluid``."""
+    if section.forcing == "penalty":
+        return PenaltyForcing(mesh, section, fluid.density, fluid.viscosity)
+    return PatchForcing(mesh, section, fluid.density)

@@ -1,0 +1,46 @@
+"""What the coupling carries from one step to the next (part of the run state, written whole to
+checkpoint.h5 so that a restart continues the same trajectory)."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class CouplingMemory:
+    """The coupling's memory between steps.
+
+    known_id : particles with larger ids have not been in the flow yet (the patch forcing brings
+        the fluid they cover up to their motion first)
+    under_id, under_momentum, under_centre : the penalty forcing's fluid momentum under each particle
+        at the end of the last step (m,) int64 sorted, (m, 6) (kg m/s and its moment about the
+        centre), (m, 3) that centre (m); the start of the next step's change, by id
+    last_change, ringing : the explicit update's watchdog, per particle row: the last step's
+        velocity change (n, 3) m/s and how many steps in a row it flipped sign and grew (n,)
+    """
+
+    known_id: int = -1
+    under_id: np.ndarray | None = None
+    under_momentum: np.ndarray | None = None
+    under_centre: np.ndarray | None = None
+    last_change: np.ndarray | None = None
+    ringing: np.ndarray | None = None
+
+    def to_arrays(self) -> dict:
+        """The arrays to store (absent parts left out)."""
+        arrays = {"known_id": np.array(self.known_id, np.int64)}
+        for name in ("under_id", "under_momentum", "under_centre", "last_change", "ringing"):
+            if getattr(self, name) is not None:
+                arrays[name] = getattr(self, name)
+        return arrays
+
+    @classmethod
+    def from_arrays(cls, arrays: dict) -> "CouplingMemory":
+        def get(name, dtype, columns=None):
+            if name not in arrays:
+                return None
+            values = np.asarray(arrays[name], dtype)
+            return values if columns is None else values.reshape(-1, columns)
+        return cls(int(arrays["known_id"]), get("under_id", np.int64), get("under_momentum", float, 6),
+                   get("under_centre", float, 3), get("last_change", float, 3), get("ringing", np.int64))

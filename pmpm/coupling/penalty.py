@@ -1,0 +1,207 @@
+"""The penalty forcing (``[coupling] forcing = "penalty"``, the default).
+
+A penalty κ (U − u) drives the fluid in a touched cell towards the particle's rigid motion
+U = V + ω × r, with κ = s α/(1 − α) ν/h² (``penalty_strength`` s, α the cell's volume fraction),
+solved implicitly with the diffusion of the momentum predictor (V κ on the diagonal, V κ U on the
+right-hand side: ``implicit_terms``). In a cut cell it balances the fluid's own viscous exchange,
+a balance without dt in it, so the forces do not depend on the time step.
+
+The impulse on a particle is what the penalty took from the fluid, J = Σ ρ V κ dt (u − U), plus the
+change ΔP of the momentum of the fluid under it, over a control volume that moves with the particle
+(``begin``: from where the last step left it). Each pass before the projection updates the guess of
+the particle's new motion, damped by the cells' own response so that light particles converge
+(``after_solve``); after the projection the step's impulse gives its velocities, drag and torque
+(``after_projection``). docs/coupling.md has the method's measurements.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from ..fluid import FluidState
+from ..particles import ParticleState
+from .locate import CellLocator, Touched, alpha_per_cell, smooth_fraction
+from .memory import CouplingMemory
+from .sums import particle_sums
+from .update import Exchange, External, damped_change, damped_guess, hydrodynamic_force, watch_ringing
+
+PENALTY_CAP = 1e3   # κ h²/ν of a cell wholly inside a particle: rigid to ~1e-3 of its neighbours' pull;
+                    # larger caps inflate ‖b‖ of the momentum solves, whose rtol is relative to it
+
+
+@dataclass(frozen=True)
+class PenaltyPasses:
+    """One step of the penalty forcing, handed from pass to pass.
+
+    touched : the step's (particle, cell, α) pairs on this rank
+    kappa : (m,) κ of each pair (1/s); the particles stay put during the flow step
+    under_mass : (m,) ρ f V, the fluid mass under the particle in each pair (f the smooth fraction)
+    under_scale : (n,) ρ V_sphere / Σ under_mass: "under" scaled to the sphere's own volume
+    internal_start : (n, 6) the fluid momentum under each particle at the step's start, with its moment
+    guess_v, guess_omega : (n, 3) the motion the next solve drives the fluid towards
+    solved_v, solved_omega : (n, 3) the motion the last solve drove it towards
+    exchanged : (n, 6) J of the last solve; response, response_spin : (n,) the cells' response M_c
+    """
+
+    touched: Touched
+    kappa: np.ndarray
+    under_mass: np.ndarray
+    under_scale: np.ndarray
+    internal_start: np.ndarray
+    guess_v: np.ndarray
+    guess_omega: np.ndarray
+    solved_v: np.ndarray | None = None
+    solved_omega: np.ndarray | None = None
+    exchanged: np.ndarray | None = None
+    response: np.ndarray | None = None
+    response_spin: np.ndarray | None = None
+
+
+class PenaltyForcing:
+    """The penalty forcing on one mesh (see the module docstring). Holds its settings only.
+
+    Parameters
+    ----------
+    mesh : pmpm.mesh.Mesh
+    section : the case's [coupling] section
+    fluid_density : ρ_f (kg/m³)
+    viscosity : μ (Pa s)
+    """
+
+    def __init__(self, mesh, section, fluid_density: float, viscosity: float):
+        self.mesh, self.comm = mesh, mesh.comm
+        self.locator = CellLocator(mesh, section.volume_fraction, int(section.subcell_points), smooth_reach=True)
+        self.rho = float(fluid_density)
+        self.nu = float(viscosity) / self.rho
+        self.two_way = section.mode == "two-way"
+        self.explicit = section.update == "explicit"
+        self.strength = float(section.penalty_strength)
+
+    def locate(self, state: ParticleState) -> Touched:
+        """Local. This rank's touched cells and volume fractions."""
+        return self.locator.locate(state)
+
+    def begin(self, state: ParticleState, touched: Touched, fluid: FluidState, memory: CouplingMemory,
+              dt: float) -> tuple[PenaltyPasses, FluidState]:
+        """Collective. The step's rates and the fluid momentum under each particle at its start.
+
+        The fluid inside a moving particle is a control volume that moves with it, so its momentum
+        change includes what the particle's advance covered and uncovered (Reynolds transport): the
+        start is the fluid under the particle *as the last step left it* (``memory``). Over a fixed
+        set of cells instead, the fluid a moving sphere sweeps up ahead and leaves behind gave it a
+        thrust. "Under" weighs each cell by a smooth fraction, not α, whose jumps as sample points
+        cross the surface made light particles ring. The flow is returned as it came."""
+        kappa = self.penalty_rates(touched)
+        under_mass = self.rho * smooth_fraction(self.mesh, self.locator.h2, state, touched) \
+            * self.mesh.cell_volume[touched.cell]
+        internal_start, under_scale = self.fluid_under(state, touched, fluid.u, under_mass)
+        if memory.under_id is not None:   # particles new to the flow keep the fluid under them now
+            known_ids, known, centre = memory.under_id, memory.under_momentum, memory.under_centre
+            position = np.minimum(np.searchsorted(known_ids, state.id), max(len(known_ids) - 1, 0))
+            same = (known_ids[position] == state.id) if len(known_ids) else np.zeros(len(state), bool)
+            start = known[position[same]].copy()
+            # its moment about where the centre is now: L' = L − (x' − x) × P
+            start[:, 3:] -= np.cross(state.x[same] - centre[position[same]], start[:, :3])
+            internal_start[same] = start
+        return PenaltyPasses(touched, kappa, under_mass, under_scale, internal_start, state.v, state.omega), fluid
+
+    def penalty_rates(self, touched: Touched) -> np.ndarray:
+        """κ (1/s) of each (particle, cell) pair: the cell's rate κ(α) = s α/(1 − α) ν/h² with α the
+        cell's total volume fraction, shared among the particles in it by their α."""
+        total = alpha_per_cell(touched, self.mesh.n_owned_cells)[touched.cell]
+        covered = np.minimum(total, 1.0)
+        strength = np.minimum(self.strength * covered / np.maximum(1.0 - covered, 1e-300), PENALTY_CAP)
+        return strength * self.nu / self.locator.h2[touched.cell] * touched.alpha / np.maximum(total, 1e-300)
+
+    def implicit_terms(self, state: ParticleState, passes: PenaltyPasses):
+        """Local. (V κ (n_owned,), V κ U (n_owned, 3)) per owned cell for the next momentum solve, U
+        the rigid motion of the current guess; (None, None) in one-way mode: the fluid is not forced."""
+        if not self.two_way:
+            return None, None
+        n_owned = self.mesh.n_owned_cells
+        diagonal, target = np.zeros(n_owned), np.zeros((n_owned, 3))
+        p, c = passes.touched.particle, passes.touched.cell
+        if len(c) == 0:
+            return diagonal, target
+        weight = self.mesh.cell_volume[c] * passes.kappa
+        rigid = passes.guess_v[p] + np.cross(passes.guess_omega[p], self.mesh.cell_center[c] - state.x[p])
+        diagonal += np.bincount(c, weight, minlength=n_owned)
+        for d in range(3):
+            target[:, d] = np.bincount(c, weight * rigid[:, d], minlength=n_owned)
+        return diagonal, target
+
+    def after_solve(self, state: ParticleState, passes: PenaltyPasses, u_star: np.ndarray, external: External,
+                    dt: float) -> tuple[np.ndarray, None, PenaltyPasses]:
+        """Collective. After a momentum solve: J of this solve and the next guess,
+
+            (m + M_c) V_next = m Vⁿ + dt F_ext + J + ΔP + M_c V_guess,   M_c = Σ ρ V κ dt / (1 + κ dt),
+
+        damped by the cells' own response to the particle's speed, an upper bound of the true one,
+        so that the passes converge without overshoot; at convergence m ΔV = dt F_ext + J + ΔP.
+        (``update = "explicit"``: no new guess; every pass drives the fluid towards the step's first
+        motion, as the paper's single patch does.) ``u_star`` is returned unchanged, with no source
+        for the next solve: the penalty is already in it (two-way) or the fluid is not forced (one-way)."""
+        n = len(state)
+        p, c = passes.touched.particle, passes.touched.cell
+        r = self.mesh.cell_center[c] - state.x[p]
+        kappa = passes.kappa
+        rigid = passes.guess_v[p] + np.cross(passes.guess_omega[p], r)
+        volume = self.rho * self.mesh.cell_volume[c]
+        # one-way: the particle takes what a local implicit penalty would exchange
+        kappa_cell = np.bincount(c, kappa, minlength=self.mesh.n_owned_cells)[c]
+        rate = kappa * dt if self.two_way else kappa * dt / (1.0 + kappa_cell * dt)
+        # how much J falls when the particle speeds up, from each cell's own response: an upper
+        # bound (diffusion to the neighbours, and ΔP, lower it), so the passes converge monotonically
+        response = volume * kappa * dt / (1.0 + kappa_cell * dt)
+        response, response_spin, (exchanged, internal) = particle_sums(
+            self.comm, n, p, r, response, (volume * rate)[:, None] * (u_star[c] - rigid),
+            passes.under_mass[:, None] * u_star[c])
+        passes = replace(passes, solved_v=passes.guess_v, solved_omega=passes.guess_omega, exchanged=exchanged,
+                         response=response, response_spin=response_spin)
+        if self.explicit:
+            return u_star, None, passes
+        impulse = exchanged + passes.under_scale[:, None] * internal - passes.internal_start   # J + ΔP
+        v, omega = damped_guess(state, external, impulse, dt, response, response_spin,
+                                passes.solved_v, passes.solved_omega)
+        return u_star, None, replace(passes, guess_v=v, guess_omega=omega)
+
+    def after_projection(self, state: ParticleState, passes: PenaltyPasses, fluid: FluidState, external: External,
+                         dt: float, memory: CouplingMemory, step: int, time: float) -> Exchange:
+        """Collective. The step's impulse J + ΔP, ΔP now with the projected velocities. Particles with
+        m ≥ M_c take it exactly (momentum conserved; M_c, not ρf V, decides: on coarse meshes it is
+        several times ρf V), lighter ones keep the damped update of the last pass (``update =
+        "explicit"``: always exactly)."""
+        n = len(state)
+        internal_end, _ = self.fluid_under(state, passes.touched, fluid.u, passes.under_mass)
+        order = np.argsort(state.id)
+        impulse = passes.exchanged + internal_end - passes.internal_start
+        m, inertia = state.mass, state.inertia
+        exact = np.full(n, self.explicit) | (m >= passes.response)
+        exact_spin = np.full(n, self.explicit) | (inertia >= passes.response_spin)
+        damping = np.where(exact, 0.0, passes.response)
+        damping_spin = np.where(exact_spin, 0.0, passes.response_spin)
+        dv, dw = damped_change(state, external, impulse, dt, damping, damping_spin, passes.solved_v,
+                               passes.solved_omega)
+        force, torque = hydrodynamic_force(state, external, dv, dw, impulse, dt)
+        memory = replace(memory, under_id=state.id[order], under_momentum=internal_end[order],
+                         under_centre=state.x[order])
+        if self.explicit:
+            last_change, ringing = watch_ringing(state, np.where(state.movable[:, None], dv, 0.0), memory.last_change,
+                                                 memory.ringing, self.rho, step, time)
+            memory = replace(memory, last_change=last_change, ringing=ringing)
+        return Exchange(fluid, force, torque, memory)
+
+    def fluid_under(self, state: ParticleState, touched: Touched, u: np.ndarray, mass: np.ndarray,
+                    x: np.ndarray | None = None):
+        """Collective. The momentum of the fluid under each particle, (n, 6): Σ m u over its pairs
+        (``mass`` m = ρ f V, f the smooth fraction) and its moment about the centre, scaled to the
+        sphere's own volume (Σ f V wobbles by ~1e-3 as the sphere moves, which in a uniform stream
+        gave a particle an impulse out of nothing); and that scale (n,). ``x``: the centres, if not
+        where ``state`` has them."""
+        p, c = touched.particle, touched.cell
+        x = state.x if x is None else x
+        covered, _, (momentum,) = particle_sums(self.comm, len(state), p, self.mesh.cell_center[c] - x[p], mass,
+                                                mass[:, None] * u[c])
+        scale = self.rho * state.volume / np.maximum(covered, np.finfo(float).tiny)
+        return scale[:, None] * momentum, scale

@@ -1,0 +1,133 @@
+"""What a run tells its user: the description before it starts, progress lines, warnings on the
+way, and summary.json at the end (wall seconds per stage, conservation diagnostics)."""
+from __future__ import annotations
+
+import math
+import time as wallclock
+from contextlib import contextmanager
+
+import numpy as np
+from mpi4py import MPI
+
+from .parallel import allreduce_sum, print0, warn
+
+
+class StageTimes:
+    """Wall seconds per stage of the time step, summed over the run (this rank's clock).
+
+    Stages do not nest: ``with times.stage("flow"):`` around the flow's own calls only, so the
+    seconds of the stages add up to the step's."""
+
+    def __init__(self):
+        self.seconds: dict[str, float] = {}
+
+    @contextmanager
+    def stage(self, name: str):
+        start = wallclock.perf_counter()
+        try:
+            yield
+        finally:
+            self.seconds[name] = self.seconds.get(name, 0.0) + wallclock.perf_counter() - start
+
+
+class Progress:
+    """Compact progress lines on rank 0: step, simulated time, wall time, ETA, every few seconds."""
+
+    def __init__(self, comm, end_time: float, quiet: bool, every_seconds: float = 5.0, start_time: float = 0.0):
+        self.comm, self.end_time, self.quiet, self.every = comm, end_time, quiet, every_seconds
+        self.start_time = start_time
+        self.start = self.last = wallclock.perf_counter()
+
+    def update(self, step: int, time: float, extra: str = "", force: bool = False):
+        now = wallclock.perf_counter()
+        if self.quiet or (not force and now - self.last < self.every):
+            return
+        self.last = now
+        elapsed = now - self.start
+        done = time - self.start_time
+        eta = elapsed * (self.end_time - time) / done if done > 0 else math.nan
+        print0(self.comm, f"step {step:7d}  t = {time:.6g} s  ({100 * time / self.end_time:5.1f} %)  "
+                          f"wall {elapsed:8.1f} s  ETA {eta:8.1f} s{extra}")
+
+
+def describe(model, state, setup_seconds: float) -> str:
+    """Collective (with a flow). What the run will do, printed before it starts."""
+    case, mesh, comm = model.case, model.mesh, model.comm
+    run = case.run
+    steps = math.ceil(run.end_time / run.dt - 1e-9)
+    return "\n".join([
+        f"pmpm: case {case.path}",
+        f"  models:    {', '.join(case.models()) or 'none'}",
+        f"  mesh:      {mesh.describe()}",
+        f"  particles: {len(state.particles)} at start, {len(model.injectors)} injection(s)",
+        f"  ranks:     {comm.size}",
+        f"  time:      0 → {run.end_time:g} s, " + (f"dt = {run.dt:g} s ({steps} steps)" if not run.adaptive_cfl else
+                                                   f"dt ≤ {run.dt:g} s adapted to CFL {run.adaptive_cfl:g}")
+        + f", output every {run.output_every:g} s",
+        *([describe_flow(model, state)] if model.flow is not None else []),
+        f"  setup:     {setup_seconds:.2f} s",
+    ])
+
+
+def describe_flow(model, state) -> str:
+    """Collective. One line on the flow, with the CFL number the boundary velocities give; warns
+    when it exceeds [run] max_cfl, and when ν dt/h² is large enough to move a particle's drag."""
+    case, flow, comm = model.case, model.flow, model.comm
+    fluid, run = case.fluid, case.run
+    cfl = flow.boundary_cfl(run.dt)
+    h = float(flow.h.min(initial=np.inf))
+    if cfl > run.max_cfl and not run.adaptive_cfl and comm.rank == 0:
+        warn(comm, f"[run] dt = {run.dt:g} s gives a CFL number of {cfl:.2f} at the boundary velocities "
+                   f"(above max_cfl = {run.max_cfl:g}); the explicit convection may go unstable")
+    diffusion = comm.allreduce(fluid.viscosity / fluid.density * run.dt / h ** 2, op=MPI.MAX)
+    if diffusion > 1 and (len(state.particles) or model.injectors) and comm.rank == 0:
+        warn(comm, f"[run] dt = {run.dt:g} s gives ν dt/h² = {diffusion:.3g}: above 1 the drag on moving "
+                   "particles falls with dt (docs/coupling.md); a smaller dt keeps it")
+    coupling = case.coupling
+    return (f"  flow:      ρ = {fluid.density:g} kg/m³, μ = {fluid.viscosity:g} Pa s, {fluid.convection} "
+            f"convection, CFL at boundary speeds {cfl:.2f}, ν dt/h² {diffusion:.3g}; coupling "
+            f"{coupling.mode}, {coupling.forcing} forcing, {coupling.volume_fraction} volume fraction, "
+            f"{coupling.update} update, {coupling.forcing_passes} forcing passes")
+
+
+def warn_once(comm, message: str) -> None:
+    """A warning from rank 0 of something every rank knows (not collective)."""
+    if comm.rank == 0:
+        warn(comm, message)
+
+
+def summary(model, state, status: str, seconds: dict) -> dict:
+    """Collective. The contents of summary.json."""
+    return {
+        "case": str(model.case.path), "status": status, "ranks": model.comm.size,
+        "cells": model.mesh.n_global_cells, "particles": len(state.particles), "particles_removed": state.removed,
+        "steps": state.step, "simulated_time": state.time, "models": model.case.models(),
+        "wall_seconds": seconds,
+        "diagnostics": diagnostics(model, state),
+    }
+
+
+def diagnostics(model, state) -> dict:
+    """Collective. Conservation checks for summary.json."""
+    particles = state.particles
+    result = {"particle_kinetic_energy": 0.5 * float(np.sum(particles.mass * np.sum(particles.v ** 2, axis=1))),
+              "particle_momentum": (particles.mass[:, None] * particles.v).sum(axis=0)}
+    if model.contact_settings is not None:
+        result["collisions"] = dict(state.collision_totals)
+    if model.injectors:
+        result["injection"] = {"placed": 0, "retried": 0, "dropped": 0, **state.injection_counts}
+    if model.flow is not None:
+        flow, fluid, mesh = model.flow, state.fluid, model.mesh
+        owned = slice(0, mesh.n_owned_cells)
+        momentum = flow.rho * (mesh.cell_volume[owned, None] * fluid.u[owned]).sum(axis=0)
+        fluxes = flow.boundary_flux(fluid)
+        result.update({
+            "fluid_kinetic_energy": flow.kinetic_energy(fluid),
+            "fluid_momentum": allreduce_sum(model.comm, momentum),
+            "max_divergence_per_second": flow.divergence_norm(fluid),
+            "boundary_volume_flux": fluxes,
+            "net_volume_flux": sum(fluxes.values()),
+            "pressure_iterations": state.pressure_iterations,
+            "final_cfl": flow.cfl(fluid, state.dt or model.case.run.dt),
+        })
+    return result

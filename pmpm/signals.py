@@ -1,0 +1,35 @@
+"""Stopping on request: SIGTERM (a batch scheduler ahead of its wall-time limit) and SIGINT (Ctrl-C)
+set a flag instead of ending the process; the time loop asks, collectively, after each step, so
+every rank stops after the same step and the run writes its state before it leaves."""
+from __future__ import annotations
+
+import signal
+
+from mpi4py import MPI
+
+SIGNALS = (signal.SIGTERM, signal.SIGINT)
+
+
+class StopRequests:
+    """``with StopRequests() as stops:`` — within the block the signals are caught; ``stops.agreed(comm)``
+    (collective) is the signal number some rank received, or 0."""
+
+    def __init__(self):
+        self.received = 0
+        self.previous = {}
+
+    def __enter__(self) -> "StopRequests":
+        for number in SIGNALS:
+            self.previous[number] = signal.signal(number, self.catch)
+        return self
+
+    def __exit__(self, *exc):
+        for number, handler in self.previous.items():
+            signal.signal(number, handler)
+
+    def catch(self, number, frame):
+        self.received = self.received or number
+
+    def agreed(self, comm) -> int:
+        """Collective. The first signal received on any rank (the largest number if several), or 0."""
+        return comm.allreduce(self.received, op=MPI.MAX) if comm.size > 1 else self.received

@@ -1,0 +1,59 @@
+"""The run state: everything a run carries from one time step to the next, as one value.
+
+The stages of a step (``pmpm.simulation``) take a ``RunState`` and return a new one; none changes
+the arrays of the state it was given. So the time loop keeps the state a step started from by
+reference, and writes it if the step fails; and ``pmpm.checkpoint`` writes and reads it whole.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .collisions import ContactMemory, Walls
+from .coupling import CouplingMemory
+from .fluid import FluidState
+from .particles import ParticleState
+
+
+@dataclass(frozen=True)
+class RunState:
+    """One moment of a run (SI).
+
+    time, step : simulated time (s) and steps taken; dt : the last step's size (s)
+    particles : every particle (``pmpm.particles``)
+    fluid : the flow, or None without [fluid]
+    hydro_force, hydro_torque : (n, 3) the fluid's force (N) and torque (N m) on each particle over the
+        last step (zero where no flow acted yet)
+    volume_fraction : (n_local,) the particles' volume fraction per cell in the last step, or None
+    next_id : the id the next new particle gets (ids are never reused)
+    removed : particles that have left the domain
+    releases : per [[injection]], the index of its next release; injection_counts : the releases'
+        particles placed at once, placed after retries, and dropped, summed over the run
+    fresh_from : particles with this id or larger were released at the end of the last step and
+        have not met the flow yet (they displace their volume of fluid in the next step)
+    coupling : the coupling's memory (``pmpm.coupling.CouplingMemory``), or None without [fluid]
+    contacts : the contact solver's memory (``pmpm.collisions.ContactMemory``), or None
+    walls : the wall triangles as they are now (rigid walls move), or None when no model needs them
+    collision_totals : collision counts summed over the run (``pmpm.collisions``)
+    pressure_iterations : pressure KSP iterations summed over the run
+    """
+
+    time: float
+    step: int
+    particles: ParticleState
+    fluid: FluidState | None
+    hydro_force: np.ndarray
+    hydro_torque: np.ndarray
+    volume_fraction: np.ndarray | None
+    next_id: int
+    removed: int
+    releases: tuple[int, ...]
+    dt: float = 0.0
+    fresh_from: int = 0
+    injection_counts: dict = field(default_factory=dict)
+    coupling: CouplingMemory | None = None
+    contacts: ContactMemory | None = None
+    walls: Walls | None = None
+    collision_totals: dict = field(default_factory=dict)
+    pressure_iterations: int = 0
