@@ -793,3 +793,25 @@ def test_wall_search_matches_the_direct_test():
     within = np.argwhere(np.linalg.norm(np.repeat(points, len(corners), 0) - q, axis=1).reshape(len(points), -1)
                          <= reach[:, None])
     assert set(map(tuple, within)) <= set(map(tuple, direct)) and len(within) > 50
+
+
+@pytest.mark.parametrize("spread", [0.1, 100.0])
+def test_pair_search_matches_the_direct_test(spread):
+    """The cell list lists exactly the pairs closer than r_i + r_j (+ 1e-6) + reach, i < j, sorted:
+    for a pack, and for a cluster in a domain so wide that the cells are grown; also with only
+    some particles chosen."""
+    from pmpm.collisions.jit import kernels
+    from pmpm.collisions.search import candidate_pairs
+    rng = np.random.default_rng(4)
+    x = rng.uniform(0, 0.1, (600, 3))
+    x[:100] = rng.uniform(0, spread, (100, 3))
+    radius, reach = rng.uniform(0.002, 0.006, 600), 0.003
+    distance = np.linalg.norm(x[:, None] - x[None], axis=2)
+    close = np.triu(distance <= (radius[:, None] + radius[None]) * (1 + 1e-6) + reach, 1)
+    assert np.array_equal(candidate_pairs(x, radius, reach, kernels().cell_list), np.argwhere(close))
+    around = rng.choice(600, 50, replace=False)
+    chosen = np.zeros(600, bool)
+    chosen[around] = True
+    expected = np.argwhere(close & (chosen[:, None] | chosen[None]))
+    assert len(expected) > 10
+    assert np.array_equal(candidate_pairs(x, radius, reach, kernels().cell_list, around), expected)

@@ -4,7 +4,8 @@ One compiled contact engine for every regime, laid out by stage:
 
 - ``settings``       coefficients, limits, tolerances (``CollisionSettings``, ``collision_settings``)
 - ``walls``          wall triangles, their motion and search (``Walls``, ``build_walls``)
-- ``search``         broad search → ``record.ContactRecord`` (the step's contacts as arrays)
+- ``search``         broad search (``cell_list``, ``wall_grid``) → ``record.ContactRecord`` (the
+                     step's contacts as arrays)
 - ``narrow``         compiled narrow phase: gaps, normals, contact times of the candidates
 - ``contact_times``  compiled contact times (eq. 5-7) and triangle geometry
 - ``impulses``       compiled impulses: closed-form impact, Gauss–Seidel sweeps, rolling friction,

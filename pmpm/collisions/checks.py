@@ -2,12 +2,14 @@
 injected ones that would overlap a particle already there (skipped)."""
 from __future__ import annotations
 
+from itertools import chain
+
 import numpy as np
 from scipy.spatial import cKDTree
 
 from ..errors import CaseError
 from ..particles import ParticleState
-from .walls import Walls, flatten, wall_distances
+from .walls import Walls, wall_distances
 
 
 def check_initial_particles(case, new, inside, walls: Walls | None) -> None:
@@ -58,6 +60,13 @@ def overlaps_existing(state: ParticleState, new) -> np.ndarray:
             if not bad[i]:
                 bad[j] = True
     return bad
+
+
+def flatten(found) -> tuple[np.ndarray, np.ndarray]:
+    """A k-d tree's per-point lists of neighbours as (point, neighbour) index arrays."""
+    sizes = np.fromiter(map(len, found), np.int64, len(found))
+    row = np.repeat(np.arange(len(found)), sizes)
+    return row, np.fromiter(chain.from_iterable(found), np.int64, int(sizes.sum()))
 
 
 def fmt(vector) -> str:

@@ -18,8 +18,8 @@ from pathlib import Path
 from types import SimpleNamespace
 
 HERE = Path(__file__).resolve().parent
-COMPILED = ("contact_times", "deposition", "event_queue", "events", "impulses", "narrow", "settings", "stats",
-            "wall_grid")  # and what they import
+COMPILED = ("cell_list", "contact_times", "deposition", "event_queue", "events", "impulses", "narrow", "settings",
+            "stats", "wall_grid")  # and what they import
 
 
 def clear_stale_cache() -> None:
@@ -50,6 +50,6 @@ def chain_globs(folder: Path, patterns) -> list[Path]:
 def kernels() -> SimpleNamespace:
     """The compiled modules (imported, and so compiled or loaded from the cache, on first call)."""
     clear_stale_cache()
-    from . import contact_times, deposition, events, impulses, narrow, wall_grid
-    return SimpleNamespace(contact_times=contact_times, deposition=deposition, events=events, impulses=impulses,
-                           narrow=narrow, wall_grid=wall_grid)
+    from . import cell_list, contact_times, deposition, events, impulses, narrow, wall_grid
+    return SimpleNamespace(cell_list=cell_list, contact_times=contact_times, deposition=deposition, events=events,
+                           impulses=impulses, narrow=narrow, wall_grid=wall_grid)

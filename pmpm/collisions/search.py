@@ -1,8 +1,8 @@
 """Broad search: the contacts that may act within a step, as a ``ContactRecord``.
 
-Particle pairs come from a k-d tree of the centres (every pair closer than 2 r_max + reach), wall
-candidates from the walls' own search (bounding spheres of the triangles, grown by how far each
-moves in the step); the compiled narrow phase (``narrow``) keeps those whose gap is within reach
+Particle pairs come from a cell list of the centres (every pair closer than r_i + r_j + reach;
+``cell_list``), wall candidates from the walls' grid (``Walls.near``: boxes and bounding spheres
+of the triangles, grown by how far each moves in the step); the compiled narrow phase (``narrow``) keeps those whose gap is within reach
 and computes gap, normal and contact time. ``reach`` bounds how far two bodies can close in a
 step: twice the largest speed × dt between particles, once it (plus the wall's own travel) for a
 wall; a particle that becomes faster within the step makes the solver search again
@@ -11,10 +11,9 @@ wall; a particle that becomes faster within the step makes the solver search aga
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from .record import ContactRecord
-from .walls import Walls, flatten
+from .walls import Walls
 
 
 def wall_arrays(walls: Walls | None) -> tuple:
@@ -29,23 +28,20 @@ def no_walls() -> tuple:
     return (z3, z3, z3, z3, z3, z3, z3, zb, zb, zb)
 
 
-def candidate_pairs(x: np.ndarray, radius: np.ndarray, reach: float, around: np.ndarray | None = None) -> np.ndarray:
-    """(k, 2) int64 pairs i < j of centres closer than 2 r_max + ``reach`` (m); with ``around``
-    (indices), only the pairs with one of them."""
-    if len(x) < 2:
-        return np.zeros((0, 2), np.int64)
-    span = 2.0 * float(radius.max()) + reach
-    tree = cKDTree(x)
-    if around is None:
-        return tree.query_pairs(span, output_type="ndarray").astype(np.int64)
-    i, j = flatten(tree.query_ball_point(x[around], span))
-    i = around[i]
-    pairs = np.unique(np.sort(np.column_stack([i, j])[i != j], axis=1), axis=0)
-    return pairs.astype(np.int64).reshape(-1, 2)
+def candidate_pairs(x: np.ndarray, radius: np.ndarray, reach: float, cell_list,
+                    around: np.ndarray | None = None) -> np.ndarray:
+    """(k, 2) int64 pairs i < j, sorted, of centres closer than r_i + r_j + ``reach`` (m), by the
+    compiled cell list; with ``around`` (indices), only the pairs with one of them."""
+    chosen = np.ones(len(x), np.bool_)
+    if around is not None:
+        chosen[:] = False
+        chosen[around] = True
+    return cell_list.close_pairs(np.ascontiguousarray(x, float), np.ascontiguousarray(radius, float), float(reach),
+                                 chosen)
 
 
 def find_contacts(bodies, walls: Walls | None, dt: float, reach: float, restitution: float, friction: float,
-                  narrow, around: np.ndarray | None = None, dense_contacts: int = 0) -> tuple[ContactRecord, bool]:
+                  kernels, around: np.ndarray | None = None, dense_contacts: int = 0) -> tuple[ContactRecord, bool]:
     """The step's contacts (see the module's docstring), and whether the step is dense: at least
     ``dense_contacts`` (> 0) of them can act (touching, or closing within ``dt`` at the relative
     speed of the centres); a dense step's record holds only those. With ``around`` (particle
@@ -57,11 +53,12 @@ def find_contacts(bodies, walls: Walls | None, dt: float, reach: float, restitut
     walls : the walls at the step's start, or None.
     dt : s; reach : m, how far two particles can close in the step.
     restitution, friction : particle–particle coefficients.
-    narrow : the compiled narrow-phase module.
+    kernels : the compiled modules (``jit.kernels()``).
     """
     n = len(bodies.radius) - 1
     x, v, radius, free = bodies.x, bodies.v, bodies.radius, bodies.free
-    pairs = candidate_pairs(x[:n], radius[:n], reach, around)
+    narrow = kernels.narrow
+    pairs = candidate_pairs(x[:n], radius[:n], reach, kernels.cell_list, around)
     keep, acts, normal, gap, time = narrow.pair_contacts(pairs[:, 0], pairs[:, 1], x, v, radius, free, reach, dt)
     pair_part = (keep, acts, pairs, normal, gap, time)
     wall_part = None

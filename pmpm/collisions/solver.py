@@ -131,7 +131,7 @@ def advance_with_collisions(state: ParticleState, walls: Walls | None, dt: float
         counters[:] = 0
         counters[EXCEEDED] = exceeded
         record, dense = find_contacts(bodies, walls, dt, 2.0 * speed * dt, settings.restitution, settings.friction,
-                                      kernels.narrow, dense_contacts=settings.dense_contacts)
+                                      kernels, dense_contacts=settings.dense_contacts)
         warm_n, warm_t = memory.recall(record, state.id)
         extra["contacts"] = len(record)
         if dense:
@@ -221,7 +221,7 @@ def remove_overlaps(bodies, record, walls_after, kernels, extra, searched: float
             break  # (or too little to reach a sphere beyond the contacts searched)
         searched = 2.0 * moved
         record = find_contacts(bodies, walls_after if walls_after is not None and len(walls_after) else None, 0.0,
-                               searched, 0.0, 0.0, kernels.narrow, around=np.flatnonzero(shift[:-1] > 0))[0]
+                               searched, 0.0, 0.0, kernels, around=np.flatnonzero(shift[:-1] > 0))[0]
     extra["overlaps_removed"] = removed
 
 

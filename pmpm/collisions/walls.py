@@ -12,7 +12,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass, replace
 from functools import cached_property
-from itertools import chain
 
 import numpy as np
 
@@ -163,13 +162,6 @@ class Walls:
         return kernels().wall_grid.near(np.ascontiguousarray(points, float), reach, extra, float(extra.max()),
                                         lower, cell, dims, start, items, *self.box, self.centroid,
                                         self.bounding_radius)
-
-
-def flatten(found) -> tuple[np.ndarray, np.ndarray]:
-    """A k-d tree's per-point lists of neighbours as (point, neighbour) index arrays."""
-    sizes = np.fromiter(map(len, found), np.int64, len(found))
-    row = np.repeat(np.arange(len(found)), sizes)
-    return row, np.fromiter(chain.from_iterable(found), np.int64, int(sizes.sum()))
 
 
 def closest_points_on_triangles(p, a, b, c) -> tuple[np.ndarray, np.ndarray]:
