@@ -71,6 +71,13 @@ def pmpm(folder, ranks, restart=None, **values):
     return seconds, json.loads((out / "summary.json").read_text()), out
 
 
+def carries_counts(checkpoint) -> bool:
+    """Whether a restart from ``checkpoint`` continues the run's collision counts."""
+    import h5py
+    with h5py.File(checkpoint, "r") as f:
+        return "collisions" in f.attrs
+
+
 def steady_rate(csv, start) -> float:
     """Particles leaving per second from the output time nearest ``start`` to the last one
     (Beverloo's law holds past the start-up of the discharge)."""
@@ -109,7 +116,10 @@ def main():
         # the discharge continues the fill's checkpoint with the orifice open
         seconds, summary, out = pmpm(folder, ranks, restart=checkpoint, end_time=FILL_TIME + sim_time, dt=dt,
                                      orifice="outlet", particles="loose.txt", output_every=sim_time / 10)
-        collisions = summary["diagnostics"].get("collisions", {})
+        collisions = dict(summary["diagnostics"].get("collisions", {}))
+        if carries_counts(checkpoint):  # the discharge's counts then start from the fill's
+            carried = fill["diagnostics"].get("collisions", {})
+            collisions = {key: value - carried.get(key, 0) for key, value in collisions.items()}
         impacts = collisions.get("particle_collisions", 0) + collisions.get("wall_collisions", 0)
         steps = round(sim_time / dt)
         discharged = summary["particles_removed"]

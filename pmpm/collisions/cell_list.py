@@ -75,5 +75,11 @@ def close_pairs(x, radius, reach, chosen):
                             found = grown
                         found[count, 0], found[count, 1] = i, j
                         count += 1
-        found[begin:count, 1] = np.sort(found[begin:count, 1])
+        for at in range(begin + 1, count):  # the few partners of i in order (insertion, in place)
+            j = found[at, 1]
+            back = at - 1
+            while back >= begin and found[back, 1] > j:
+                found[back + 1, 1] = found[back, 1]
+                back -= 1
+            found[back + 1, 1] = j
     return found[:count].copy()

@@ -16,6 +16,13 @@ from .settings import CONTACT_TOL, PARALLEL
 
 
 @njit(cache=True)
+def can_close(gap, speed, horizon, radius):
+    """A contact acts within ``horizon`` (s): touching (gap <= 1e-6 r), or its gap (m) closes at
+    the relative speed (m/s) of the centres (of a centre and the wall surface)."""
+    return gap <= speed * horizon + CONTACT_TOL * radius
+
+
+@njit(cache=True)
 def pair_contacts(first, second, x, v, radius, free, reach, dt):
     """Candidate pairs (first, second) kept where one is free and the gap is at most ``reach`` (m)
     beyond touching. Returns keep (k,) bool; acts (k,) bool: touching, or the gap can close
@@ -38,7 +45,7 @@ def pair_contacts(first, second, x, v, radius, free, reach, dt):
             continue
         dv = sub(vec(v, a), vec(v, b))
         keep[c] = True
-        acts[c] = dist - contact <= norm(dv) * dt + CONTACT_TOL * radius[a]
+        acts[c] = can_close(dist - contact, norm(dv), dt, radius[a])
         normal[c, 0], normal[c, 1], normal[c, 2] = scale(dx, 1.0 / dist)
         gap[c] = dist - contact
         time[c] = pair_time(dx, dv, contact, dt, 0.0)
@@ -75,7 +82,7 @@ def wall_contacts(particle, triangle, x, v, radius, walls, travel, reach, dt):
         face[c] = on_face
         u = surface_velocity(k, q, ctr, n, velocity, omega, rigid)
         u_wall[c, 0], u_wall[c, 1], u_wall[c, 2] = u
-        acts[c] = g <= norm(sub(vec(v, p), u)) * dt + CONTACT_TOL * radius[p]
+        acts[c] = can_close(g, norm(sub(vec(v, p), u)), dt, radius[p])
         w = sub(vec(v, p), u) if moves[k] else vec(v, p)
         time[c] = wall_time(xp, w, radius[p], a, b, cc, n, dt, 0.0)
     return keep, acts, normal, gap, face, u_wall, time
@@ -96,7 +103,7 @@ def closing_pairs(pairs, x, v, radius, free, reach, horizon, tol):
         g = dist - (radius[a] + radius[b])
         if dist <= 0 or g > tol * (radius[a] + radius[b]) + reach:
             continue
-        keep[c] = g <= norm(sub(vec(v, a), vec(v, b))) * horizon + tol * radius[a]
+        keep[c] = g <= norm(sub(vec(v, a), vec(v, b))) * horizon + tol * radius[a]  # can_close, any tol
     return keep
 
 

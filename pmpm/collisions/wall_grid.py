@@ -102,5 +102,11 @@ def near(points, reach, extra, extra_max, lower, cell, dims, start, items, box_l
                         found_p[count] = p
                         found_k[count] = k
                         count += 1
-        found_k[begin:count] = np.sort(found_k[begin:count])
+        for at in range(begin + 1, count):  # the few triangles of p in order (insertion, in place)
+            k = found_k[at]
+            back = at - 1
+            while back >= begin and found_k[back] > k:
+                found_k[back + 1] = found_k[back]
+                back -= 1
+            found_k[back + 1] = k
     return found_p[:count].copy(), found_k[:count].copy()
