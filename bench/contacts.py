@@ -12,6 +12,9 @@
    (no mesh, no flow): ms per step after the first steps, contacts and sweeps per step.
 3. A DEM bed of N spheres (default 100,000) settling on 1 rank: ms per step and the memory a step
    allocates at its peak, per particle (tracemalloc: numpy's arrays included), short.
+4. Rest and overlaps (``bench/contact_rest.py``, on this checkout and the baseline): a bed in
+   equilibrium and a poured one (largest speed and spin about the vertical once settled), a
+   sphere released into a wall (the speed it gets, the time the step takes).
 
 Timings on a shared machine are noisy: the load average is printed with each part.
 """
@@ -130,9 +133,9 @@ def contacts_table() -> None:
                      box(side, 1.0, restitution=0.5, friction=0.5), rest, (0, 0, -G)))
     for k in (5, 8):
         x, side = pyramid_bed(r, k)
+        events = CollisionSettings(restitution=0.5, friction=0.5, rest_speed=3 * G * dt, dense_contacts=0)
         rows.append((f"bed at rest, {k}x{k} base, resting solves", spheres(x, np.zeros_like(x), r),
-                     box(side, 1.0, restitution=0.5, friction=0.5),
-                     CollisionSettings(restitution=0.5, friction=0.5, rest_speed=3 * G * dt, dense_contacts=0), (0, 0, -G)))
+                     box(side, 1.0, restitution=0.5, friction=0.5), events, (0, 0, -G)))
     rng = np.random.default_rng(0)
     for n in (1000, 10000):
         side = 2.2 * r * round(n ** (1 / 3)) * 2.0
@@ -189,6 +192,17 @@ def big_bed(n: int) -> None:
           f"memory {sum(a.nbytes for a in memory.to_arrays().values()) / n:.0f} B/particle; {load()}", flush=True)
 
 
+def rest_and_overlaps(baseline: str | None) -> None:
+    python = str(ROOT / ".venv" / "bin" / "python")
+    for label, tree in ([("baseline " + baseline, Path(baseline))] if baseline else []) + [("this checkout", ROOT)]:
+        env = dict(os.environ, OMP_NUM_THREADS="1")
+        if tree != ROOT:
+            env.update(PYTHONPATH=str(tree), PYTHONDONTWRITEBYTECODE="1",
+                       NUMBA_CACHE_DIR=str(Path(tempfile.gettempdir()) / "pmpm_bench_numba_baseline"))
+        _, result = run_case([python, str(ROOT / "bench" / "contact_rest.py")], tree, env)
+        print(f"rest and overlaps ({label}; {load()}):\n{result.stdout.rstrip()}", flush=True)
+
+
 def main():
     options = sys.argv[1:]
     baseline = options[options.index("--baseline") + 1] if "--baseline" in options else None
@@ -197,6 +211,7 @@ def main():
         bouncing_balls(baseline)
     contacts_table()
     big_bed(big)
+    rest_and_overlaps(baseline)
 
 
 if __name__ == "__main__":

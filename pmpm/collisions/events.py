@@ -26,14 +26,15 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from .contact_times import add, cross, dot, norm, pair_time, scale, sub, surface_velocity, triangle_at, vec, \
-    wall_contact, wall_time
-from .impulses import (apply_impulse, impact, kinetic_energy, limit_energy, relative_velocity, roll_resistance, sweep,
-                       warm_start)
+from .contact_times import (dot, norm, pair_time, scale, sub, surface_velocity, triangle_at, vec, wall_contact,
+                            wall_time)
 from .deposition import deposit, deposit_touching
 from .event_queue import heap_pop, heap_push
+from .impulses import (apply_impulse, impact, kinetic_energy, limit_energy, relative_velocity, roll_resistance, sweep,
+                       warm_start)
 from .settings import APPROACH_TOL, CONTACT_TOL, ENERGY_TOL, GAP_TOL, QUIET
 from .stats import CAPPED, CLAMPS, EVENTS, PAIR, RESTING, SETTLES, SWEEPS, WALL
+
 RESTING_MODE, CAPPED_MODE = 0, 1
 NONE, IMPACT, DEPOSIT, SLOW, RESCHEDULE = range(5)
 
