@@ -9,14 +9,16 @@ Gauss–Seidel sweeps over the contacts in the record's order (compiled, ``impul
 started from the previous step's impulses (``ContactMemory``), at most ``dense_sweeps`` sweeps
 (20 × as many without any). An impact that happens at time t_c inside the step moves its bodies
 as the event solution does: before t_c at the old velocity, after it at the new one
-(x_end = x0 + v_new dt − (J/m) t_c), so an isolated impact ends where the time-ordered solution
-ends, with its velocity. Deposition, the energy check and rolling friction as in a resting solve.
+(x_end = x0 + v_new dt − (v_new − v_old) t_c, with t_c for a body in several contacts their
+times weighted by their impulses, 0 for a touching one), so an isolated impact ends where the
+time-ordered solution ends, with its velocity, and no body moves further than its velocity
+change allows. Deposition, the energy check and rolling friction as in a resting solve.
 """
 from __future__ import annotations
 
 import numpy as np
 
-from ..arrays import cross, sum_rows
+from ..arrays import cross
 from .search import wall_arrays
 from .settings import COLD_SWEEPS, CONTACT_TOL, ENERGY_TOL, SWEEP_TOL
 from .stats import CLAMPS, PAIR, RESTING, SWEEPS, WALL
@@ -77,10 +79,14 @@ def dense_step(bodies, record, warm_n, warm_t, settings, dt, walls, kernels, cou
                                  record.friction, inv_m, inv_i, v, w, lam_n, lam_t, COLD_SWEEPS * settings.dense_sweeps,
                                  tol)
         impulses.limit_energy(members, inv_m, inv_i, v, w, v0, w0, energy, ENERGY_TOL)
-    late = rows[hit_time[rows] > 0]
-    shift = (lam_n[late, None] * normal[late] + lam_t[late]) * hit_time[late, None]
-    displacement = (sum_rows(first[late], -inv_m[first[late], None] * shift, n + 1)
-                    + sum_rows(second[late], inv_m[second[late], None] * shift, n + 1))
+    # each body's velocity changed at the impulse-weighted time of its contacts (0 touching, t_c
+    # for an impact inside the step): before it the body moved at its old velocity
+    strength = np.sqrt(lam_n[rows] ** 2 + (lam_t[rows] ** 2).sum(1))
+    weight = np.bincount(first[rows], strength, n + 1) + np.bincount(second[rows], strength, n + 1)
+    late = (np.bincount(first[rows], strength * hit_time[rows], n + 1)
+            + np.bincount(second[rows], strength * hit_time[rows], n + 1))
+    changed_at = np.divide(late, weight, out=np.zeros(n + 1), where=weight > 0)
+    displacement = -(v - v0) * changed_at[:, None]
     size = np.sqrt((lam_t * lam_t).sum(1))
     sticking = touching & (lam_n > 0) & (size < record.friction * lam_n * (1 - 1e-9))
     rolling = rows[wall[rows] & (record.rolling_friction[rows] > 0) & sticking[rows]]
