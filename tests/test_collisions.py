@@ -832,3 +832,16 @@ def test_dense_impact_under_a_load_stays_above_the_floor():
     assert r * (1 - 1e-6) <= state.x[0, 2] <= r + gap + u * dt
     assert np.diff(state.x[:, 2]).min() >= 2 * r * (1 - 1e-6)
     assert np.all(state.v[:, 2] > -u)  # every sphere slowed by the impact
+
+
+def test_contact_memory_reads_the_arrays_of_the_engine_before():
+    """A checkpoint written by the engine before holds keys first · 2^31 + other + 2^30 and the
+    tangential impulse on the contact's i with a sign: read back, the same contacts and the
+    impulses on the lower id (a pair stored the other way round turns its tangential impulse)."""
+    keys = np.array([3 * 2 ** 31 + 7 + 2 ** 30, 5 * 2 ** 31 + (-1 - 2) + 2 ** 30])
+    memory = ContactMemory.from_arrays({"keys": keys, "normal": np.array([1.0, 2.0]),
+                                        "tangential": np.array([[1.0, 0, 0], [0, 1.0, 0]]), "sign": np.array([-1.0, 1.0])})
+    assert memory.first_id.tolist() == [3, 5] and memory.second_id.tolist() == [7, -3]
+    assert memory.normal_impulse.tolist() == [1.0, 2.0]
+    assert memory.tangential_impulse.tolist() == [[-1.0, 0, 0], [0, 1.0, 0]]
+    assert np.all(np.diff(memory.keys) > 0)

@@ -96,7 +96,15 @@ class ContactMemory:
 
     @classmethod
     def from_arrays(cls, arrays: dict) -> "ContactMemory":
-        """The memory from ``to_arrays``' output (e.g. read back from a checkpoint)."""
+        """The memory from ``to_arrays``' output (e.g. read back from a checkpoint); also from the
+        arrays of the engine before (``keys``, ``normal``, ``tangential``, ``sign``: key
+        first · 2^31 + other + 2^30, the tangential impulse on the contact's i, sign −1 where i
+        was the key's second particle)."""
+        if "keys" in arrays:
+            keys = np.asarray(arrays["keys"], np.int64).reshape(-1)
+            sign = np.asarray(arrays["sign"], float).reshape(-1)
+            return cls(keys // (1 << 31), keys % (1 << 31) - (1 << 30), np.asarray(arrays["normal"], float).reshape(-1),
+                       np.asarray(arrays["tangential"], float).reshape(-1, 3) * sign[:, None])
         return cls(np.asarray(arrays["first_id"], np.int64).reshape(-1),
                    np.asarray(arrays["second_id"], np.int64).reshape(-1),
                    np.asarray(arrays["normal_impulse"], float).reshape(-1),
