@@ -122,7 +122,7 @@ def main():
             collisions = {key: value - carried.get(key, 0) for key, value in collisions.items()}
         impacts = collisions.get("particle_collisions", 0) + collisions.get("wall_collisions", 0)
         steps = round(sim_time / dt)
-        discharged = summary["particles_removed"]
+        discharged = summary["particles_removed"] - fill.get("particles_removed", 0)  # the restart carries the fill's
         steady = steady_rate(out / "particles.csv", FILL_TIME + sim_time / 2)
         results[ranks] = seconds
         print(f"pmpm hopper ranks={ranks} particles={count} sim_time={sim_time} dt={dt} steps={steps} "
@@ -135,7 +135,8 @@ def main():
               f"contacts_per_step={collisions.get('dense_contacts', 0) / steps:.0f} "
               f"resting_contacts_per_step={collisions.get('resting_contacts', 0) / steps:.0f} "
               f"sweeps_per_step={collisions.get('sweeps', 0) / steps:.1f} "
-              f"fallbacks={collisions.get('fallbacks', 0)} capped_steps={collisions.get('capped', 0)}", flush=True)
+              f"energy_clamps={collisions.get('energy_clamps', 0)} capped_steps={collisions.get('capped', 0)}",
+              flush=True)
     if results.get(1) and results.get(2):
         print(f"pmpm speed-up 1 -> 2 ranks: {results[1] / results[2]:.2f}")
     if "--no-peer" in options:

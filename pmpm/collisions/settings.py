@@ -15,10 +15,10 @@ GAP_TOL = 1e-7        # a predicted wall contact further than 1e-7 r (a rotating
 QUIET = 1e-3          # × rest_speed: touching contacts approaching slower are left to the next step's resting solve
 PARALLEL = 1 - 1e-4   # wall contacts of one particle with normals closer than ~0.8° count as one
 OVERLAP_TOL = 1e-9    # × (r_i + r_j): overlaps beyond this are removed by moving positions (never velocities)
-SWEEP_TOL = 1e-10     # × rest_speed: a solve's sweeps stop when no contact changes a velocity by more
+SWEEP_TOL = 1e-10     # × rest_speed: a solve ends with a sweep that changes no contact-point velocity by more
 ENERGY_TOL = 1e-12    # relative: a contact solve may not raise the kinetic energy by more (round-off)
 SEARCH_SLACK = 1.25   # the broad search assumes speeds up to 1.25 × the fastest (then, if outgrown, the speed seen)
-SEPARATION_SWEEPS = 50  # sweeps of one overlap removal (what is left is removed in the next steps)
+SEPARATION_SWEEPS = 50  # sweeps of an overlap removal after an event step (a fifth after a dense step)
 MAX_SEARCHES = 3      # the step is searched at most this often (then contacts beyond the search are left
                       # to the next step, as overlaps)
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-# slots written by the compiled kernels
+# slots of the int64 counters (the compiled kernels count into them; the solver into the last)
 PAIR, WALL, RESTING, EVENTS, CAPPED, DEPOSITED, SWEEPS, SETTLES, CLAMPS, EXCEEDED = range(10)
 NAMES = ("particle_collisions",  # impacts between particles (faster than the rest speed in a dense step)
          "wall_collisions",      # impacts with walls
@@ -17,7 +17,7 @@ NAMES = ("particle_collisions",  # impacts between particles (faster than the re
          "energy_clamps",        # solves whose result would have raised the kinetic energy (limited)
          "searches_exceeded")    # speeds that outgrew the broad search (the step was searched again)
 # counted in Python
-EXTRA = ("dense_steps", "dense_contacts", "contacts", "overlaps_removed", "fallbacks")
+EXTRA = ("dense_steps", "dense_contacts", "contacts", "overlaps_removed")
 
 
 def new_counters() -> np.ndarray:
