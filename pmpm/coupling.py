@@ -164,14 +164,39 @@ class Coupling:
         return np.minimum(self.alpha_per_cell(touched), 1.0)
 
     # -- 2a. the penalty (the default forcing) ------------------------------------------------
-    def penalty_rates(self, touched: Touched) -> np.ndarray:
-        """κ (1/s) of each (particle, cell) pair: the cell's rate κ(α) = s α/(1 − α) ν/h² with α the
-        cell's total volume fraction, shared among the particles in it by their α."""
+    def penalty_rates(self, touched: Touched, speed: np.ndarray) -> np.ndarray:
+        """κ (1/s) of each (particle, cell) pair, from the cell's total volume fraction α, shared among
+        the particles in it by their α:
+
+            κ = min(s α/(1 − α), 1000) ν/h²  +  (1000/6) α⁸ |u − U|_max / h.
+
+        The first term is the solid's viscous friction on the fluid in the cell (s = ``penalty_strength``,
+        fitted on the Stokes drag): it sets where the particle's surface lies, without dt. The second
+        is the blockage: a cell the particle fills must stop the flow that the pressure drives through
+        it, ∇p/ρ ~ |u − U|²/d, faster than convection brings it; ``speed`` |u − U|_max is the particle's
+        (``relative_speed``). A cell wholly inside gets 167 times either exchange rate with its
+        neighbours (6 ν/h² by diffusion, |u − U|/h by convection); α⁸ leaves the friction of the cut
+        cells viscous, so the surface stays where the Stokes fit put it (docs/coupling.md)."""
         total = self.alpha_per_cell(touched)[touched.cell]
         covered = np.minimum(total, 1.0)
-        strength = np.minimum(self.penalty_strength * covered / np.maximum(1.0 - covered, 1e-300),
-                              PENALTY_CAP)
-        return strength * self.nu / self.h2[touched.cell] * touched.alpha / np.maximum(total, 1e-300)
+        friction = np.minimum(self.penalty_strength * covered / np.maximum(1.0 - covered, 1e-300), PENALTY_CAP)
+        h2 = self.h2[touched.cell]
+        blockage = PENALTY_CAP / 6.0 * covered ** 8 * speed[touched.particle] / np.sqrt(h2)
+        return (friction * self.nu / h2 + blockage) * touched.alpha / np.maximum(total, 1e-300)
+
+    def relative_speed(self, state: ParticleState, touched: Touched, u: np.ndarray) -> np.ndarray:
+        """Collective. (n,) the largest |u − U| (m/s) over each particle's touched cells at the step's
+        start, U its rigid motion: the speed at which the flow meets it, for the penalty's blockage."""
+        p, c = touched.particle, touched.cell
+        rigid = state.v[p] + np.cross(state.omega[p], self.mesh.cell_center[c] - state.x[p])
+        slip = np.linalg.norm(u[c] - rigid, axis=1)
+        order = np.lexsort((slip, p))                     # by particle, then slip: each group's last is its max
+        last = np.append(p[order][1:] != p[order][:-1], True) if len(p) else np.zeros(0, bool)
+        speed = np.zeros(len(state))
+        speed[p[order][last]] = slip[order][last]
+        if self.comm.size > 1:
+            self.comm.Allreduce(MPI.IN_PLACE, speed, op=MPI.MAX)
+        return speed
 
     def penalty_terms(self, state: ParticleState, touched: Touched):
         """Local. (V κ, V κ U) per owned cell for the next momentum solve, U the rigid motion of the
@@ -211,7 +236,7 @@ class Coupling:
         if not self.penalty:
             return
         # the particles stay put during the flow step: their rates and smooth fractions hold for every pass
-        self.kappa = self.penalty_rates(touched)
+        self.kappa = self.penalty_rates(touched, self.relative_speed(state, touched, u))
         self.under_mass = self.rho * self.smooth_fraction(state, touched) * self.mesh.cell_volume[touched.cell]
         self.internal_start = self.fluid_under(state, touched, u, self.under_mass)   # particles new to the flow
         if self.internal_end is not None:

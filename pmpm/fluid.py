@@ -75,6 +75,7 @@ class FlowSolver:
         self._momentum_dt = None
         self.momentum = []
         self._penalized = False      # a particle penalty is on the momentum matrices' diagonals
+        self.penalty_rate = np.zeros(self.n_local)   # κ (1/s) of the last momentum solve, per cell
         self.last_pressure_iterations = 0
 
     # -- set-up -------------------------------------------------------------------------------------
@@ -176,6 +177,7 @@ class FlowSolver:
         self.pressure.set_atol(1e-15 * self.rho / dt * float(np.sqrt(self.comm.allreduce(np.sum(area ** 2)))))
         self._momentum_dt = dt
         self._penalized = False
+        self.penalty_rate[:] = 0.0
         return self.momentum
 
     def _penalize(self, solvers, rhs, penalty):
@@ -184,6 +186,8 @@ class FlowSolver:
         if penalty is None and not self._penalized:
             return rhs
         diagonal, target = penalty() if penalty is not None else (np.zeros(self.n_owned), None)
+        self.penalty_rate[:self.n_owned] = diagonal / self.volume[:self.n_owned]
+        self.mesh.update_ghosts(self.penalty_rate)      # for the Rhie–Chow coefficient of faces to ghosts
         for solver in {id(s): s for s in solvers}.values():   # the components may share one matrix
             solver.add_to_diagonal(diagonal)
         self._penalized = penalty is not None
@@ -305,19 +309,24 @@ class FlowSolver:
                     rhs[:self.n_owned] += V[:self.n_owned, None] * (u_star[:self.n_owned] - before) / dt
         self.mesh.update_ghosts(u_star)
 
-        # 2. face flux with the Rhie–Chow pressure term
+        # 2. face flux with the Rhie–Chow pressure term. Its coefficient is the predictor's response to a
+        # pressure gradient, d = dt/ρ / (1 + κ dt) with the particles' implicit penalty κ: with dt/ρ, a
+        # penalized cell's gradient came back into the flux dt/ρ-strong, a pressure diffusion ∝ dt
+        # across a particle's surface that lowered its drag as dt grew
         c = dt / rho
+        d = c / (1.0 + self.penalty_rate * dt)
         grad_p_f = self.interpolate(grad_p)
+        d_f = self.interpolate(d)
         flux_star = np.empty_like(flux)
-        flux_star[:n_int] = (np.einsum("fi,fi->f", self.interpolate(u_star) + c * grad_p_f, self.S)
-                             - c * (self.a * (p[self.N] - p[self.P]) + self.nonorthogonal(grad_p_f)))
+        flux_star[:n_int] = (np.einsum("fi,fi->f", self.interpolate(u_star + d[:, None] * grad_p), self.S)
+                             - d_f * (self.a * (p[self.N] - p[self.P]) + self.nonorthogonal(grad_p_f)))
         outlet = self.kind == OUTLET
         flux_star[n_int:] = self.flux_fixed
         if outlet.any():
             B = self.B[outlet]
-            flux_star[n_int:][outlet] = (np.einsum("fi,fi->f", u_star[B] + c * grad_p[B], self.S_b[outlet])
-                                         - c * (self.a_b[outlet] * (self.p_out[outlet] - p[B])
-                                                + self.nonorthogonal(grad_p[B], outlet)))
+            flux_star[n_int:][outlet] = (np.einsum("fi,fi->f", u_star[B] + d[B, None] * grad_p[B], self.S_b[outlet])
+                                         - d[B] * (self.a_b[outlet] * (self.p_out[outlet] - p[B])
+                                                   + self.nonorthogonal(grad_p[B], outlet)))
 
         # 3. projection, with non-orthogonal correctors on skewed meshes
         correction = np.zeros(self.n_local)
