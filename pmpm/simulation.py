@@ -354,14 +354,61 @@ class Simulation:
         # the paper's patch makes the particle forces depend on ν dt/h² (docs/coupling.md): say it
         diffusion = self.comm.allreduce(fluid.viscosity / fluid.density * run.dt / h ** 2, op=MPI.MAX)
         if diffusion > 1 and (len(self.particles.id) or self.injectors) and self.comm.rank == 0:
-            warn(self.comm, f"[run] dt = {run.dt:g} s gives ν dt/h² = {diffusion:.3g}: above 1 the drag on moving "
-                            "particles falls with dt (−3 % at 1.6, −6 % at 4, −15 % at 16 in creeping flow, "
-                            "docs/coupling.md); a smaller dt keeps it")
+            warn(self.comm, f"[run] dt = {run.dt:g} s gives ν dt/h² = {diffusion:.3g}: above 1 the drag on "
+                            "particles falls with dt, the more so the fewer cells per diameter (docs/coupling.md); "
+                            "a smaller dt keeps it")
+        self.warn_outside_validation(speed)
         return (f"  flow:      ρ = {fluid.density:g} kg/m³, μ = {fluid.viscosity:g} Pa s, {fluid.convection} "
                 f"convection, CFL at boundary speeds {cfl:.2f}, ν dt/h² {diffusion:.3g}; coupling "
                 f"{self.case.coupling.mode}, {self.case.coupling.forcing} forcing, "
                 f"{self.case.coupling.volume_fraction} volume fraction, {self.case.coupling.update} update, "
                 f"{self.case.coupling.forcing_passes} forcing passes")
+
+    def warn_outside_validation(self, boundary_speed: float) -> None:
+        """Collective. Warn where particles are resolved more coarsely, or may meet the flow at a higher
+        Reynolds number, than the coupling was validated for (bench/drag_curve.py, docs/coupling.md):
+        fewer than 3 cells per diameter; Re above 1000; Re above (d/h)², where the boundary layer,
+        about d/√Re thick, is thinner than a cell and the drag comes out too high. The relative speed
+        is bounded by the boundary velocities, the particles' own and their settling speed in still
+        fluid (Schiller–Naumann)."""
+        from .reference import terminal_velocity
+
+        state, fluid, mesh = self.particles, self.case.fluid, self.mesh
+        boundary_speed = self.comm.allreduce(boundary_speed, op=MPI.MAX)
+        h_max = self.comm.allreduce(float(self.flow.h[:mesh.n_owned_cells].max(initial=0.0)), op=MPI.MAX)
+        gravity = float(np.linalg.norm(self.case.run.gravity))
+        # present particles: h of the cell holding the centre; injected ones: the coarsest cell
+        cells = mesh.find_owned_cells(state.x)
+        h = np.where(cells >= 0, self.flow.h[np.maximum(cells, 0)], 0.0)
+        if self.comm.size > 1:
+            self.comm.Allreduce(MPI.IN_PLACE, h, op=MPI.MAX)
+        diameter = np.concatenate([2 * state.radius, [2 * i.section.radius for i in self.injectors]])
+        density = np.concatenate([state.density, [i.section.density for i in self.injectors]])
+        own_speed = np.concatenate([np.linalg.norm(state.v, axis=1),
+                                    [np.linalg.norm(i.section.velocity) for i in self.injectors]])
+        free = np.concatenate([state.motion == 0, np.ones(len(self.injectors), bool)])
+        h = np.concatenate([np.where(h > 0, h, h_max), np.full(len(self.injectors), h_max)])
+        if not len(diameter) or self.comm.rank:
+            return
+        settling = np.zeros(len(diameter))
+        sinking = free & (density != fluid.density) & (gravity > 0)
+        settling[sinking] = terminal_velocity(density[sinking], fluid.density, fluid.viscosity, diameter[sinking],
+                                              gravity)
+        reynolds = fluid.density * np.maximum.reduce([np.full(len(diameter), boundary_speed), own_speed, settling]) \
+            * diameter / fluid.viscosity
+        resolution = diameter / h
+        if resolution.min() < 3:
+            warn(self.comm, f"{int((resolution < 3).sum())} particle(s) span fewer than 3 cells per diameter (down to "
+                            f"{resolution.min():.2g}): the coupling's drag and blockage are validated from 3 on "
+                            "(docs/coupling.md)")
+        worst = int(np.argmax(reynolds / resolution ** 2))
+        if reynolds.max() > 1000:
+            warn(self.comm, f"particles may meet the flow at Re ≈ {reynolds.max():.3g} (boundary, particle and settling "
+                            "speeds): the drag is validated up to Re 1000 (docs/coupling.md)")
+        elif reynolds[worst] > resolution[worst] ** 2:
+            warn(self.comm, f"particles may meet the flow at Re ≈ {reynolds[worst]:.3g} on {resolution[worst]:.2g} "
+                            f"cells per diameter: above Re = (d/h)² the boundary layer (≈ d/√Re) is thinner than a "
+                            "cell and the drag comes out too high (docs/coupling.md: its error by Re and resolution)")
 
     def summary(self, status: str, setup_seconds: float, total_seconds: float) -> dict:
         state = self.particles

@@ -239,6 +239,26 @@ def test_large_diffusion_number_is_warned_of(tmp_path, capsys):
         assert ("ν dt/h² = 3.2" in err) == warned, err
 
 
+def test_resolution_and_reynolds_number_outside_validation_are_warned_of(tmp_path, capsys):
+    """At start-up the run says where particles are coarser than 3 cells per diameter, or may meet
+    the flow above Re 1000 or above (d/h)² (a boundary layer thinner than a cell; the drag comes out
+    too high, bench/drag_curve.py): the settling speed, boundary and particle speeds bound the Re."""
+    stream = '[boundary.zmin]\ntype = "inlet"\nvelocity = [0.0, 0.0, {}]\n[boundary.zmax]\ntype = "outlet"\n'
+    cases = [  # (case values, what the warning must say or None), h = 5 mm
+        (dict(), None),                                                        # at rest, 4 cells/d
+        (dict(radius=0.006), "span fewer than 3 cells per diameter"),          # 2.4 cells/d
+        (dict(rho_f=1.2, mu=1.8e-5, motion="fixed", extra=stream.format(3.0)), "validated up to Re 1000"),
+        (dict(mu=0.05, motion="fixed", extra=stream.format(0.1)), "thinner than a"),   # Re 40 > 16
+        (dict(mu=0.05, rho_p=1100.0, gravity="[0.0, 0.0, -9.81]"), "thinner than a"),  # settles at Re ≈ 50
+        (dict(mu=0.2, rho_p=1100.0, gravity="[0.0, 0.0, -9.81]"), None),               # settles at Re ≈ 7
+    ]
+    for values, expected in cases:
+        simulation(MPI.COMM_SELF, tmp_path, **values).describe_flow()
+        err = capsys.readouterr().err
+        assert (expected is None and "validated" not in err and "thinner" not in err) or \
+            (expected is not None and expected in err), (values, err)
+
+
 def test_drag_does_not_depend_on_the_time_step(tmp_path):
     """The penalty forcing: Stokes drag at 8 cells per diameter over a 4× range of ν dt/h² (0.1 and
     0.4, the same simulated time) within 1.5 % (measured 0.5 %). The paper's patch moved by 11 %
