@@ -263,18 +263,20 @@ class Coupling:
         total = np.bincount(touched.cell, fraction, minlength=self.mesh.n_owned_cells)
         return fraction / np.maximum(total[touched.cell], 1.0)
 
-    def fluid_under(self, state, touched, u, mass, x=None) -> np.ndarray:
+    def fluid_under(self, state, touched, u, mass, x=None, extra=None):
         """Collective. (n, 6): the momentum of the fluid under each particle, Σ m u over its pairs,
         ``mass`` m = ρ f V with f the smooth fraction (``under_mass`` for this step's pairs), and its
         moment r × about the centre, scaled to the sphere's own volume (``under_scale``: Σ f V
         wobbles by ~1e-3 as the sphere moves, which in a uniform stream gave a particle an impulse
-        out of nothing). ``x``: the centres, if not where ``state`` has them."""
+        out of nothing). ``x``: the centres, if not where ``state`` has them. ``extra``: a per-pair
+        momentum (m, 3) summed in the same reduction, returned second."""
         p, c = touched.particle, touched.cell
         x = state.x if x is None else x
-        covered, _, (momentum,) = self.particle_sums(len(state), p, self.mesh.cell_center[c] - x[p], mass,
-                                                     mass[:, None] * u[c])
+        covered, _, sums = self.particle_sums(len(state), p, self.mesh.cell_center[c] - x[p], mass,
+                                              mass[:, None] * u[c], *(() if extra is None else (extra,)))
         self.under_scale = self.rho * state.volume / np.maximum(covered, np.finfo(float).tiny)
-        return self.under_scale[:, None] * momentum
+        under = self.under_scale[:, None] * sums[0]
+        return under if extra is None else (under, sums[1])
 
     def penalty_exchange(self, state, touched, u, dt, external_force, external_torque, last, step, time):
         """Collective. The particles' share of a penalized step.
@@ -309,8 +311,9 @@ class Coupling:
             # how much J falls when the particle speeds up, from each cell's own response: an upper
             # bound (diffusion to the neighbours, and ΔP, lower it), so the passes converge monotonically
             response = volume * kappa * dt / (1.0 + kappa_cell * dt)
+            self.exchange_weight = volume * rate
             self.response, self.response_spin, (exchanged, internal) = self.particle_sums(
-                n, p, r, response, (volume * rate)[:, None] * (u[c] - rigid), self.under_mass[:, None] * u[c])
+                n, p, r, response, self.exchange_weight[:, None] * (u[c] - rigid), self.under_mass[:, None] * u[c])
             self.exchanged = exchanged                         # J of this pass's solve
             self.pending[:] = exchanged + self.under_scale[:, None] * internal - self.internal_start   # J + ΔP
             self.solved_v, self.solved_omega = self.patched_v, self.patched_omega
@@ -324,8 +327,15 @@ class Coupling:
             self.patched_v = np.where(free[:, None], v, state.v)
             self.patched_omega = np.where(free[:, None], omega, state.omega)
             return None
-        # after the projection: J of the last solve, ΔP with the projected velocities
-        internal_end = self.fluid_under(state, touched, u, self.under_mass)
+        # after the projection: ΔP with the projected velocities, and (two-way) J too: the projection's
+        # correction is damped by the implicit penalty like the predictor (FlowSolver.step), so the
+        # fluid gave up Σ ρ V κ dt (u − U) at the projected u
+        if self.two_way:
+            rigid = self.solved_v[p] + np.cross(self.solved_omega[p], r)
+            internal_end, self.exchanged = self.fluid_under(state, touched, u, self.under_mass,
+                                                            extra=self.exchange_weight[:, None] * (u[c] - rigid))
+        else:
+            internal_end = self.fluid_under(state, touched, u, self.under_mass)
         order = np.argsort(state.id)
         self.internal_end = (state.id[order], internal_end[order], state.x[order].copy())
         impulse = self.exchanged + internal_end - self.internal_start

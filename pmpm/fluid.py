@@ -348,7 +348,9 @@ class FlowSolver:
         if outlet.any():
             flux[n_int:][outlet] -= c * self.a_b[outlet] * (0.0 - correction[self.B[outlet]])
         grad_c = self.gradient(correction, np.where(outlet, 0.0, correction[self.B]))
-        u[:] = u_star - c * grad_c
+        # in penalized cells the implicit penalty damps the correction as it damped the predictor's
+        # response: without it, each step's p' kicked the fluid inside an accelerating particle
+        u[:] = u_star - d[:, None] * grad_c
         if patch is not None:  # the paper's patch after the flow solve: the projection let fluid into the particles
             patch(u, True)
         p += correction
