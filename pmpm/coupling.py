@@ -5,14 +5,17 @@ the sphere, and carries the particle's volume fraction α; the fluid there is dr
 rigid motion U = V + ω × r, and the momentum this takes from the particle is the drag and the
 torque (r × F, r from the particle centre to the cell centre). Two forcings (``[coupling] forcing``):
 
-``penalty`` (default). A penalty κ (U − u) with κ = s α/(1 − α) ν/h² (``penalty_strength`` s), solved
-implicitly with the diffusion of the momentum predictor (the flow solver calls
-:meth:`Coupling.penalty_terms` before each of its ``forcing_passes`` momentum solves). In a cut cell
-it balances the fluid's own viscous exchange, a balance without dt in it, so the forces do not
-depend on the time step. The impulse on a particle is what the penalty took, J = Σ ρ V κ dt (u − U),
-plus the change of the momentum of the fluid under it over a control volume moving with it
-(:meth:`Coupling.begin_step`); each pass updates the particles' guess of their new motion, damped
-by the cells' own response so that light particles converge (:meth:`Coupling.penalty_exchange`).
+``penalty`` (default). A penalty κ (U − u) with κ = s α/(1 − α) ν/h² (``penalty_strength`` s, the
+solid's friction) plus a blockage rate (1000/6) α⁸ U_rel/h that beats convection in the cells a
+particle fills (:meth:`Coupling.penalty_rates`), solved implicitly with the diffusion of the momentum
+predictor (the flow solver calls :meth:`Coupling.penalty_terms` before each of its ``forcing_passes``
+momentum solves, and damps its pressure terms in penalized cells by 1/(1 + κ dt)). In a cut cell the
+friction balances the fluid's own viscous exchange, a balance without dt in it, so the forces do not
+depend on the time step. The impulse on a particle is what the penalty took, J = Σ ρ V κ dt (u − U)
+at the projected u, plus the change of the momentum of the fluid under it over a control volume
+moving with it (:meth:`Coupling.begin_step`); each pass updates the particles' guess of their new
+motion, damped by the cells' own response so that light particles converge
+(:meth:`Coupling.penalty_exchange`).
 
 ``patch`` (the paper). After each momentum solve, u ← (1 − α) u + α U in touched cells, and once
 more after the projection; the momentum the patch adds is taken from the particle, with the update
@@ -291,7 +294,9 @@ class Coupling:
         (ω likewise with the moment of M_c): particle and fluid solved together, damped by the cells'
         own response to the particle's speed, an upper bound of the true one, so that the passes
         converge without overshoot; at convergence it is m ΔV = dt F_ext + J + ΔP. After the
-        projection (``last``) ΔP includes its pressure; particles with m ≥ M_c then take exactly
+        projection (``last``) ΔP includes its pressure, and J is taken at the projected u (the
+        projection's correction is damped by the implicit penalty, ``FlowSolver.step``, so that is
+        what the fluid gave up); particles with m ≥ M_c then take exactly
         J + ΔP (momentum conserved), lighter ones keep the damped update (``update = "explicit"``:
         always exactly, and every pass penalizes the step's first motion, as the paper's single
         patch does).

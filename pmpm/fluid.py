@@ -6,10 +6,11 @@ Cell-centred finite volumes, collocated u and p. One step of size dt:
    (face flux Fⁿ × upwind, central or linear-upwind face value) and the diffusion ν L implicit
    (one KSP solve per component, matrices assembled once per dt);
 2. face flux with a Rhie–Chow-type pressure term, which is what keeps the pressure free of
-   checkerboarding: F* = (ū* + dt/ρ ∇̄pⁿ)·S − dt/ρ (a_f (pⁿ_N − pⁿ_P) + k_f·∇̄pⁿ);
+   checkerboarding: F* = (u* + d ∇pⁿ)‾·S − d̄ (a_f (pⁿ_N − pⁿ_P) + k_f·∇̄pⁿ), d = dt/ρ except in
+   cells under a particle's implicit penalty κ, where d = dt/ρ / (1 + κ dt);
 3. projection: the pressure correction p' from Σ a_f (p'_P − p'_N) = −ρ/dt Σ F* (PETSc KSP,
    ``pmpm.pressure``), with explicit non-orthogonal correctors k_f·∇̄p' on skewed meshes;
-4. correction: F = F* − dt/ρ (a_f Δp' + k_f·∇̄p'), u = u* − dt/ρ ∇p', p = pⁿ + p'.
+4. correction: F = F* − dt/ρ (a_f Δp' + k_f·∇̄p'), u = u* − d ∇p', p = pⁿ + p'.
 
 Here a_f = |S|²/(d·S) (over-relaxed split, k_f = S − a_f d), bars are face interpolations, and
 S is an explicit momentum source (the particles, ``pmpm.coupling``). The face fluxes F are

@@ -355,7 +355,7 @@ def test_settling_sphere_matches_ten_cate_experiments(tmp_path, experiment, end_
     6.7 d wide), at 4 cells per diameter. Its terminal speed (the mean over the last fifth of the
     run; terminal: within 2 % of the mean over the fifth before, measured +0.3 … +1.1 %):
     - within 7 % of the body-fitted Navier–Stokes speed (OpenFOAM, `TEN_CATE_BODY_FITTED`;
-      measured −1, −2, −5 %; 8 cells per diameter: −1.5 … −3 % for all four, bench/accuracy.py),
+      measured −1.4, −2.1, −5.0 %; 8 cells per diameter: −1.5 … −3 % for all four, bench/accuracy.py),
     - within 10 % of the measured speed (measured −9, −5, −8 %; the measurements lie 4–9 % above
       the body-fitted solution)."""
     from pmpm.reference import TEN_CATE_2002, TEN_CATE_BODY_FITTED
