@@ -10,7 +10,7 @@ solid's friction) plus a blockage rate (1000/6) α⁸ U_rel/h that beats convect
 particle fills (:meth:`Coupling.penalty_rates`), solved implicitly with the diffusion of the momentum
 predictor (the flow solver calls :meth:`Coupling.penalty_terms` before each of its ``forcing_passes``
 momentum solves, and damps its pressure terms in penalized cells by 1/(1 + κ dt)). In a cut cell the
-friction balances the fluid's own viscous exchange, a balance without dt in it, so the forces do not
+friction balances the fluid's own viscous exchange, a balance without dt in it, so the forces hardly
 depend on the time step. The impulse on a particle is what the penalty took, J = Σ ρ V κ dt (u − U)
 at the projected u, plus the change of the momentum of the fluid under it over a control volume
 moving with it (:meth:`Coupling.begin_step`); each pass updates the particles' guess of their new
