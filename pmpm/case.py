@@ -94,7 +94,9 @@ SCHEMA: dict[str, tuple[Key, ...]] = {
             help="penalty: κ(α)(U − u) solved with the diffusion, forces independent of dt; patch: the "
                  "paper's α-weighted patch after each solve (forces depend on ν dt/h², docs/coupling.md)"),
         Key("penalty_strength", "float", 35.0, ">0",
-            help="s in the penalty rate κ = s α/(1 − α) ν/h² of a cell with volume fraction α"),
+            help="s in the penalty's friction rate s α/(1 − α) ν/h² of a cell with volume fraction α (its "
+                 "blockage rate, (1000/6) α⁸ U_rel/h with U_rel the flow's speed past the particle, has no knob; "
+                 "docs/coupling.md)"),
         Key("update", "str", "implicit", choices=("implicit", "explicit"),
             help="implicit: stable for light particles (measured to ρp/ρf = 0.3); explicit: the paper's, "
                  "rings below ρp/ρf ≈ 0.5–1.2 (docs/coupling.md)"),

@@ -204,8 +204,13 @@ def flow_stage(model: Model, state: RunState, external: External, dt: float, tim
             if source is not None and forcing_pass < passes - 1:
                 rhs = plus_owned(rhs, source)
     with times.stage("flow"):
-        projection = flow.project(fluid, u_star, predicted, dt, step, time, volume_source=displaced)
-        fluid = flow.correct(fluid, u_star, projection, dt)
+        rate = None
+        if diagonal is not None:   # the penalty of the last solve damps the pressure's terms in its cells
+            rate = np.zeros(model.mesh.n_local_cells)
+            rate[:n_owned] = diagonal / model.mesh.cell_volume[:n_owned]
+            model.mesh.update_ghosts(rate)
+        projection = flow.project(fluid, u_star, predicted, dt, step, time, volume_source=displaced, penalty_rate=rate)
+        fluid = flow.correct(fluid, u_star, projection, dt, penalty_rate=rate)
     with times.stage("coupling"):
         fractions = np.zeros(model.mesh.n_local_cells)
         fractions[:n_owned] = volume_fraction(touched, n_owned)
