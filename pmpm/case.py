@@ -150,13 +150,33 @@ SCHEMA: dict[str, tuple[Key, ...]] = {
         Key("location_angular_velocity", "vec3", (0.0, 0.0, 0.0), unit="rad/s"),
         Key("rotation_center", "vec3", (0.0, 0.0, 0.0), unit="m"),
     ),
+    "body": (
+        Key("name", "str", None, help="how messages and summary.json name the body (default: body <n>)"),
+        Key("shape", "str", check="", choices=("box", "cylinder", "surface"),
+            help="box (axis-aligned at t = 0), cylinder, or a closed triangulated surface from a file"),
+        Key("center", "vec3", (0.0, 0.0, 0.0), unit="m", help="box, cylinder: the centre at t = 0"),
+        Key("size", "vec3", None, check=">0", unit="m", help="box: its edges along x, y, z (before tilt)"),
+        Key("tilt", "vec3", (0.0, 0.0, 0.0), unit="rad",
+            help="box, cylinder: turned about its centre at t = 0 by this rotation vector (a pitched blade, a slope)"),
+        Key("axis", "vec3", (0.0, 0.0, 1.0), help="cylinder: its axis"),
+        Key("radius", "float", None, ">0", unit="m", help="cylinder"),
+        Key("length", "float", None, ">0", unit="m", help="cylinder: along its axis"),
+        Key("file", "str", None, help="surface: a closed triangulated surface (STL, or any surface meshio reads)"),
+        Key("velocity", "vec3", (0.0, 0.0, 0.0), unit="m/s", help="prescribed translation"),
+        Key("angular_velocity", "vec3", (0.0, 0.0, 0.0), unit="rad/s",
+            help="prescribed rotation about rotation_center (which moves with the translation)"),
+        Key("rotation_center", "vec3", (0.0, 0.0, 0.0), unit="m"),
+        Key("restitution", "float", None, "0..1", help="particles on the body (default: [collisions])"),
+        Key("friction", "float", None, ">=0", help="particles on the body (default: [collisions])"),
+        Key("rolling_friction", "float", None, ">=0", help="particles on the body (default: [collisions])"),
+    ),
     "deposition": (
         Key("zones", "strings", (), help="wall boundaries on which particles stay"),
     ),
 }
 SECTIONS = ("run", "mesh", "fluid", "boundary", "coupling", "particles", "collisions",
-            "field_forces", "injection", "deposition")
-ARRAY_TABLES = {"injection", "particles.add"}
+            "field_forces", "injection", "body", "deposition")
+ARRAY_TABLES = {"injection", "particles.add", "body"}
 
 
 # ----------------------------------------------------------------------------------------------
@@ -191,6 +211,7 @@ class Case:
     collisions: Section | None
     field_forces: Section | None
     injections: tuple  # of Section
+    bodies: tuple  # of Section: immersed rigid bodies of prescribed motion
     deposition: Section | None
 
     @property
@@ -209,6 +230,7 @@ class Case:
                  "collisions" if self.collisions else None,
                  "field forces" if self.field_forces else None,
                  "injection" if self.injections else None,
+                 "bodies" if self.bodies else None,
                  "deposition" if self.deposition else None]
         return [n for n in names if n]
 
@@ -331,6 +353,7 @@ def build_case(raw: dict, path: Path) -> Case:
                                         SCHEMA["particles"], "particles", name, extra=("add",)))
         particles_add = array_of_tables(particles_raw.get("add", []), "particles.add", name)
     injections = array_of_tables(raw.get("injection", []), "injection", name)
+    bodies = array_of_tables(raw.get("body", []), "body", name)
 
     case = Case(
         path=path,
@@ -347,6 +370,7 @@ def build_case(raw: dict, path: Path) -> Case:
         collisions=table("collisions", "collisions"),
         field_forces=table("field_forces", "field_forces"),
         injections=injections,
+        bodies=bodies,
         deposition=table("deposition", "deposition"),
     )
     check_consistency(case)
@@ -462,7 +486,19 @@ def check_consistency(case: Case) -> None:
     for bname, b in case.boundaries.items():
         if b.motion == "rigid" and case.fluid is not None and b.type == "wall" and any(b.velocity + b.angular_velocity):
             raise CaseError(f"{name}: [boundary.{bname}] motion = \"rigid\" moves the wall itself, which the "
-                            "fixed flow mesh cannot follow; use it in scenes without [fluid], or motion = \"surface\"")
+                            "fixed flow mesh cannot follow; for a paddle or a plate moving in the fluid use a [[body]], "
+                            "or motion = \"surface\" for a wall whose surface slides along itself")
+    needs = {"box": ("size",), "cylinder": ("radius", "length"), "surface": ("file",)}
+    for i, body in enumerate(case.bodies):
+        missing = [key for key in needs[body.shape] if getattr(body, key) is None]
+        if missing:
+            raise CaseError(f"{name}: [[body]] #{i}: shape = \"{body.shape}\" needs "
+                            + " and ".join(f"{key} = ..." for key in missing))
+        if body.shape == "cylinder" and not any(body.axis):
+            raise CaseError(f"{name}: [[body]] #{i}: axis = [0, 0, 0] has no direction")
+    if case.bodies and (case.fluid is None or case.collisions is not None):
+        raise CaseError(f"{name}: [[body]] drives the fluid only, for now: particles do not meet bodies yet; "
+                        "use it with [fluid] and without [collisions]")
     for i, inj in enumerate(case.injections):
         if inj.stop < inj.start:
             raise CaseError(f"{name}: [[injection]] #{i}: stop = {inj.stop} must be >= start = {inj.start}")

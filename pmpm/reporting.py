@@ -163,6 +163,9 @@ def diagnostics(model, state) -> dict:
         result["collisions"] = dict(state.collision_totals)
     if model.injectors:
         result["injection"] = {"placed": 0, "retried": 0, "dropped": 0, **state.injection_counts}
+    if state.body_forces is not None:
+        result["body_forces"] = {body.name: {"force": row[:3], "torque": row[3:]}
+                                 for body, row in zip(model.bodies, state.body_forces)}
     if model.flow is not None:
         flow, fluid, mesh = model.flow, state.fluid, model.mesh
         owned = slice(0, mesh.n_owned_cells)

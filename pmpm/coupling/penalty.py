@@ -34,6 +34,15 @@ PENALTY_CAP = 1e3   # κ h²/ν of a cell wholly inside a particle: rigid to ~1e
                     # larger caps inflate ‖b‖ of the momentum solves, whose rtol is relative to it
 
 
+def cell_rate(covered: np.ndarray, speed: np.ndarray, nu: float, h2: np.ndarray, strength: float) -> np.ndarray:
+    """κ (1/s) of cells a solid covers by the fractions ``covered`` (≤ 1), met by the flow at
+    ``speed`` (m/s), of squared size ``h2`` (m²): friction min(s α/(1 − α), 1000) ν/h² plus blockage
+    (1000/6) α⁸ speed/h (``PenaltyForcing.penalty_rates``)."""
+    friction = np.minimum(strength * covered / np.maximum(1.0 - covered, 1e-300), PENALTY_CAP)
+    blockage = PENALTY_CAP / 6.0 * covered ** 8 * speed / np.sqrt(h2)
+    return friction * nu / h2 + blockage
+
+
 @dataclass(frozen=True)
 class PenaltyPasses:
     """One step of the penalty forcing, handed from pass to pass.
@@ -126,11 +135,9 @@ class PenaltyForcing:
         either exchange rate with its neighbours (6 ν/h² by diffusion, |u − U|/h by convection); α⁸
         leaves the friction of the cut cells viscous, so the surface stays where the Stokes fit put it."""
         total = alpha_per_cell(touched, self.mesh.n_owned_cells)[touched.cell]
-        covered = np.minimum(total, 1.0)
-        friction = np.minimum(self.strength * covered / np.maximum(1.0 - covered, 1e-300), PENALTY_CAP)
-        h2 = self.locator.h2[touched.cell]
-        blockage = PENALTY_CAP / 6.0 * covered ** 8 * speed[touched.particle] / np.sqrt(h2)
-        return (friction * self.nu / h2 + blockage) * touched.alpha / np.maximum(total, 1e-300)
+        rate = cell_rate(np.minimum(total, 1.0), speed[touched.particle], self.nu, self.locator.h2[touched.cell],
+                         self.strength)
+        return rate * touched.alpha / np.maximum(total, 1e-300)
 
     def relative_speed(self, state: ParticleState, touched: Touched, u: np.ndarray) -> np.ndarray:
         """Collective. (n,) the largest |u − U| (m/s) over each particle's touched cells at the step's
