@@ -78,6 +78,9 @@ SCHEMA: dict[str, tuple[Key, ...]] = {
             help="surface: the wall stays, its surface moves (a lid, a spinning drum); rigid: the wall "
                  "itself moves (a paddle; particles-only scenes)"),
         Key("pressure", "float", 0.0, unit="Pa", help="outlet pressure"),
+        Key("particles", "str", None, choices=("wall", "pass"),
+            help="how particles meet the boundary: wall, they bounce off it (the default for walls, inlets — a "
+                 "distributor plate — and symmetry planes), or pass, they leave the domain (the default for outlets)"),
         Key("restitution", "float", None, "0..1", help="overrides [collisions] for this wall"),
         Key("friction", "float", None, ">=0", help="overrides [collisions] for this wall"),
         Key("rolling_friction", "float", None, ">=0", help="overrides [collisions] for this wall"),
@@ -488,6 +491,10 @@ def check_consistency(case: Case) -> None:
             raise CaseError(f"{name}: [boundary.{bname}] motion = \"rigid\" moves the wall itself, which the "
                             "fixed flow mesh cannot follow; for a paddle or a plate moving in the fluid use a [[body]], "
                             "or motion = \"surface\" for a wall whose surface slides along itself")
+    for bname, b in case.boundaries.items():
+        if b.type == "wall" and b.particles == "pass":
+            raise CaseError(f"{name}: [boundary.{bname}] particles = \"pass\": particles cannot pass a wall; make the "
+                            "boundary an outlet (or an inlet) to let them through")
     needs = {"box": ("size",), "cylinder": ("radius", "length"), "surface": ("file",)}
     for i, body in enumerate(case.bodies):
         missing = [key for key in needs[body.shape] if getattr(body, key) is None]
