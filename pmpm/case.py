@@ -56,6 +56,12 @@ SCHEMA: dict[str, tuple[Key, ...]] = {
         Key("file", "str", None, help="mesh file: gmsh .msh or any format meshio reads"),
         Key("cell_type", "str", "hex", choices=("hex", "tet"), help="box cells: hexahedra or tetrahedra"),
     ),
+    "mesh.patch": (
+        Key("name", "str", help="the boundary name of the faces it covers ([boundary.<name>] sets its type)"),
+        Key("side", "str", choices=("xmin", "xmax", "ymin", "ymax", "zmin", "zmax"), help="the box's side it lies on"),
+        Key("lower", "vec3", unit="m", help="the faces of the side whose centres lie in [lower, upper]"),
+        Key("upper", "vec3", unit="m"),
+    ),
     "mesh.box": (
         Key("lower", "vec3", unit="m"),
         Key("upper", "vec3", unit="m"),
@@ -78,6 +84,9 @@ SCHEMA: dict[str, tuple[Key, ...]] = {
             help="surface: the wall stays, its surface moves (a lid, a spinning drum); rigid: the wall "
                  "itself moves (a paddle; particles-only scenes)"),
         Key("pressure", "float", 0.0, unit="Pa", help="outlet pressure"),
+        Key("particles", "str", None, choices=("wall", "pass"),
+            help="how particles meet the boundary: wall, they bounce off it (the default for walls, inlets — a "
+                 "distributor plate — and symmetry planes), or pass, they leave the domain (the default for outlets)"),
         Key("restitution", "float", None, "0..1", help="overrides [collisions] for this wall"),
         Key("friction", "float", None, ">=0", help="overrides [collisions] for this wall"),
         Key("rolling_friction", "float", None, ">=0", help="overrides [collisions] for this wall"),
@@ -94,7 +103,9 @@ SCHEMA: dict[str, tuple[Key, ...]] = {
             help="penalty: κ(α)(U − u) solved with the diffusion, forces independent of dt; patch: the "
                  "paper's α-weighted patch after each solve (forces depend on ν dt/h², docs/coupling.md)"),
         Key("penalty_strength", "float", 35.0, ">0",
-            help="s in the penalty rate κ = s α/(1 − α) ν/h² of a cell with volume fraction α"),
+            help="s in the penalty's friction rate s α/(1 − α) ν/h² of a cell with volume fraction α (its "
+                 "blockage rate, (1000/6) α⁸ U_rel/h with U_rel the flow's speed past the particle, has no knob; "
+                 "docs/coupling.md)"),
         Key("update", "str", "implicit", choices=("implicit", "explicit"),
             help="implicit: stable for light particles (measured to ρp/ρf = 0.3); explicit: the paper's, "
                  "rings below ρp/ρf ≈ 0.5–1.2 (docs/coupling.md)"),
@@ -148,13 +159,33 @@ SCHEMA: dict[str, tuple[Key, ...]] = {
         Key("location_angular_velocity", "vec3", (0.0, 0.0, 0.0), unit="rad/s"),
         Key("rotation_center", "vec3", (0.0, 0.0, 0.0), unit="m"),
     ),
+    "body": (
+        Key("name", "str", None, help="how messages and summary.json name the body (default: body <n>)"),
+        Key("shape", "str", check="", choices=("box", "cylinder", "surface"),
+            help="box (axis-aligned at t = 0), cylinder, or a closed triangulated surface from a file"),
+        Key("center", "vec3", (0.0, 0.0, 0.0), unit="m", help="box, cylinder: the centre at t = 0"),
+        Key("size", "vec3", None, check=">0", unit="m", help="box: its edges along x, y, z (before tilt)"),
+        Key("tilt", "vec3", (0.0, 0.0, 0.0), unit="rad",
+            help="box, cylinder: turned about its centre at t = 0 by this rotation vector (a pitched blade, a slope)"),
+        Key("axis", "vec3", (0.0, 0.0, 1.0), help="cylinder: its axis"),
+        Key("radius", "float", None, ">0", unit="m", help="cylinder"),
+        Key("length", "float", None, ">0", unit="m", help="cylinder: along its axis"),
+        Key("file", "str", None, help="surface: a closed triangulated surface (STL, or any surface meshio reads)"),
+        Key("velocity", "vec3", (0.0, 0.0, 0.0), unit="m/s", help="prescribed translation"),
+        Key("angular_velocity", "vec3", (0.0, 0.0, 0.0), unit="rad/s",
+            help="prescribed rotation about rotation_center (which moves with the translation)"),
+        Key("rotation_center", "vec3", (0.0, 0.0, 0.0), unit="m"),
+        Key("restitution", "float", None, "0..1", help="particles on the body (default: [collisions])"),
+        Key("friction", "float", None, ">=0", help="particles on the body (default: [collisions])"),
+        Key("rolling_friction", "float", None, ">=0", help="particles on the body (default: [collisions])"),
+    ),
     "deposition": (
         Key("zones", "strings", (), help="wall boundaries on which particles stay"),
     ),
 }
 SECTIONS = ("run", "mesh", "fluid", "boundary", "coupling", "particles", "collisions",
-            "field_forces", "injection", "deposition")
-ARRAY_TABLES = {"injection", "particles.add"}
+            "field_forces", "injection", "body", "deposition")
+ARRAY_TABLES = {"injection", "particles.add", "body", "mesh.patch"}
 
 
 # ----------------------------------------------------------------------------------------------
@@ -181,6 +212,7 @@ class Case:
     run: Section
     mesh: Section
     box: Section | None
+    patches: tuple  # of Section: named parts of a box's sides
     fluid: Section | None
     boundaries: dict  # name → Section (only those listed in the file)
     coupling: Section | None
@@ -189,6 +221,7 @@ class Case:
     collisions: Section | None
     field_forces: Section | None
     injections: tuple  # of Section
+    bodies: tuple  # of Section: immersed rigid bodies of prescribed motion
     deposition: Section | None
 
     @property
@@ -207,6 +240,7 @@ class Case:
                  "collisions" if self.collisions else None,
                  "field forces" if self.field_forces else None,
                  "injection" if self.injections else None,
+                 "bodies" if self.bodies else None,
                  "deposition" if self.deposition else None]
         return [n for n in names if n]
 
@@ -305,11 +339,14 @@ def build_case(raw: dict, path: Path) -> Case:
     mesh_raw = raw["mesh"]
     if not isinstance(mesh_raw, dict):
         raise CaseError(f"{name}: [mesh] must be a table")
-    mesh = Section(check_table({k: v for k, v in mesh_raw.items() if k != "box"}, SCHEMA["mesh"], "mesh", name,
-                               extra=("box",)))
+    mesh = Section(check_table({k: v for k, v in mesh_raw.items() if k not in ("box", "patch")}, SCHEMA["mesh"],
+                               "mesh", name, extra=("box", "patch")))
     box = table("mesh.box", "mesh.box")
     if (box is None) == (mesh.file is None):
         raise CaseError(f"{name}: [mesh] needs exactly one of box = {{...}} or file = \"...\"")
+    patches = array_of_tables(mesh_raw.get("patch", []), "mesh.patch", name)
+    if patches and box is None:
+        raise CaseError(f"{name}: [[mesh.patch]] names parts of a box's sides; a mesh file names its own boundaries")
 
     boundaries_raw = raw.get("boundary", {})
     if not isinstance(boundaries_raw, dict):
@@ -329,12 +366,14 @@ def build_case(raw: dict, path: Path) -> Case:
                                         SCHEMA["particles"], "particles", name, extra=("add",)))
         particles_add = array_of_tables(particles_raw.get("add", []), "particles.add", name)
     injections = array_of_tables(raw.get("injection", []), "injection", name)
+    bodies = array_of_tables(raw.get("body", []), "body", name)
 
     case = Case(
         path=path,
         run=table("run", "run", required=True),
         mesh=mesh,
         box=box,
+        patches=patches,
         fluid=table("fluid", "fluid"),
         boundaries=boundaries,
         # a flow with particles is coupled by default
@@ -345,6 +384,7 @@ def build_case(raw: dict, path: Path) -> Case:
         collisions=table("collisions", "collisions"),
         field_forces=table("field_forces", "field_forces"),
         injections=injections,
+        bodies=bodies,
         deposition=table("deposition", "deposition"),
     )
     check_consistency(case)
@@ -460,7 +500,23 @@ def check_consistency(case: Case) -> None:
     for bname, b in case.boundaries.items():
         if b.motion == "rigid" and case.fluid is not None and b.type == "wall" and any(b.velocity + b.angular_velocity):
             raise CaseError(f"{name}: [boundary.{bname}] motion = \"rigid\" moves the wall itself, which the "
-                            "fixed flow mesh cannot follow; use it in scenes without [fluid], or motion = \"surface\"")
+                            "fixed flow mesh cannot follow; for a paddle or a plate moving in the fluid use a [[body]], "
+                            "or motion = \"surface\" for a wall whose surface slides along itself")
+    for bname, b in case.boundaries.items():
+        if b.type == "wall" and b.particles == "pass":
+            raise CaseError(f"{name}: [boundary.{bname}] particles = \"pass\": particles cannot pass a wall; make the "
+                            "boundary an outlet (or an inlet) to let them through")
+    needs = {"box": ("size",), "cylinder": ("radius", "length"), "surface": ("file",)}
+    for i, body in enumerate(case.bodies):
+        missing = [key for key in needs[body.shape] if getattr(body, key) is None]
+        if missing:
+            raise CaseError(f"{name}: [[body]] #{i}: shape = \"{body.shape}\" needs "
+                            + " and ".join(f"{key} = ..." for key in missing))
+        if body.shape == "cylinder" and not any(body.axis):
+            raise CaseError(f"{name}: [[body]] #{i}: axis = [0, 0, 0] has no direction")
+    if case.bodies and (case.fluid is None or case.collisions is not None):
+        raise CaseError(f"{name}: [[body]] drives the fluid only, for now: particles do not meet bodies yet; "
+                        "use it with [fluid] and without [collisions]")
     for i, inj in enumerate(case.injections):
         if inj.stop < inj.start:
             raise CaseError(f"{name}: [[injection]] #{i}: stop = {inj.stop} must be >= start = {inj.start}")

@@ -63,6 +63,8 @@ def write(comm, folder: Path, mesh, state) -> None:
             groups["coupling"] = state.coupling.to_arrays()
         if state.contacts is not None:
             groups["contacts"] = state.contacts.to_arrays()
+        if state.body_forces is not None:
+            groups["bodies"] = {"forces": state.body_forces}
         if state.walls is not None:
             groups["walls"] = {name: getattr(state.walls, name) for name in WALL_FIELDS}
         for group, arrays in groups.items():   # replicated on every rank: rank 0 writes them
@@ -108,7 +110,7 @@ def read(comm, path: Path) -> dict:
     try:
         with h5py.File(path, "r") as f:
             data = {"attrs": dict(f.attrs)}
-            for group in ("particles", "coupling", "contacts", "walls", "fluid"):
+            for group in ("particles", "coupling", "contacts", "walls", "bodies", "fluid"):
                 if group in f:
                     data[group] = {k: f[f"{group}/{k}"][...] for k in f[group]}
             if "particles" not in data:
@@ -147,7 +149,8 @@ def restore(comm, data: dict, model, initial, path: Path):
                     fresh_from=int(attrs.get("fresh_from", attrs["next_id"])),
                     injection_counts=json.loads(attrs.get("injection_counts", "{}")),
                     hydro_force=stored["hydro_force"].reshape(-1, 3), hydro_torque=stored["hydro_torque"].reshape(-1, 3),
-                    contacts=ContactMemory.from_arrays(data["contacts"]) if "contacts" in data else None)
+                    contacts=ContactMemory.from_arrays(data["contacts"]) if "contacts" in data else None,
+                    body_forces=data["bodies"]["forces"].reshape(-1, 6) if "bodies" in data else None)
     if "coupling" in data and initial.coupling is not None:
         state = replace(state, coupling=CouplingMemory.from_arrays(data["coupling"]))
     if "walls" in data and initial.walls is not None and len(data["walls"]["a"]) == len(initial.walls):

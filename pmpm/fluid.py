@@ -6,12 +6,14 @@ time loop calls in turn (``pmpm.simulation``; particles add implicit terms to st
 1. ``predictor``: the explicit right-hand side V/dt uⁿ − C(uⁿ) − V ∇pⁿ/ρ, the convection C from
    the face flux Fⁿ and an upwind, central or linear-upwind face value;
 2. ``solve_momentum``: (V/dt − ν L + D) u* = right-hand side, the diffusion ν L implicit (one KSP
-   solve per component, matrices assembled once per dt), D an extra diagonal (the particles' penalty);
+   solve per component, matrices assembled once per dt), D = V κ an extra diagonal (the particles'
+   implicit penalty κ);
 3. ``project``: face flux with a Rhie–Chow-type pressure term, which keeps the pressure free of
-   checkerboarding, F* = (ū* + dt/ρ ∇̄pⁿ)·S − dt/ρ (a_f (pⁿ_N − pⁿ_P) + k_f·∇̄pⁿ); then the pressure
-   correction p' from Σ a_f (p'_P − p'_N) = −ρ/dt Σ F* (PETSc KSP, ``pmpm.pressure``), with
-   explicit non-orthogonal correctors k_f·∇̄p' on skewed meshes;
-4. ``correct``: F = F* − dt/ρ (a_f Δp' + k_f·∇̄p'), u = u* − dt/ρ ∇p', p = pⁿ + p'.
+   checkerboarding, F* = (u* + d ∇pⁿ)‾·S − d̄ (a_f (pⁿ_N − pⁿ_P) + k_f·∇̄pⁿ) with d = dt/ρ, or
+   dt/ρ / (1 + κ dt) in a penalized cell (the predictor's response to a pressure gradient there);
+   then the pressure correction p' from Σ a_f (p'_P − p'_N) = −ρ/dt Σ F* (PETSc KSP,
+   ``pmpm.pressure``), with explicit non-orthogonal correctors k_f·∇̄p' on skewed meshes;
+4. ``correct``: F = F* − dt/ρ (a_f Δp' + k_f·∇̄p'), u = u* − d ∇p', p = pⁿ + p'.
 
 Here a_f = |S|²/(d·S) (over-relaxed split, k_f = S − a_f d) and bars are face interpolations.
 The face fluxes F are divergence-free to the KSP tolerance and convect the next step. Each stage
@@ -313,26 +315,41 @@ class FlowSolver:
         return u_star
 
     def project(self, state: FluidState, u_star: np.ndarray, predicted: Predictor, dt: float, step: int = 0,
-                time: float = 0.0, volume_source: np.ndarray | None = None) -> Projection:
+                time: float = 0.0, volume_source: np.ndarray | None = None,
+                penalty_rate: np.ndarray | None = None) -> Projection:
         """Collective. Face fluxes with the Rhie–Chow pressure term, then the pressure correction p'
         that makes them divergence-free (stage 3; non-orthogonal correctors on skewed meshes), or,
         with ``volume_source`` (n_local,) q in m³/s, makes each cell's net outflow q (the fluid that
-        new particles displace). Refreshes ``u_star``'s ghost rows first (in place)."""
+        new particles displace). ``penalty_rate`` (n_local,) κ (1/s) of the implicit penalty of the
+        last momentum solve, ghost rows current, or None. Refreshes ``u_star``'s ghost rows first
+        (in place)."""
         rho, n_int = self.rho, self.n_interior
         self.mesh.update_ghosts(u_star)
         p, grad_p = state.p, predicted.grad_p
         c = dt / rho
         grad_p_f = self.interpolate(grad_p)
         flux_star = np.empty_like(state.flux)
-        flux_star[:n_int] = (np.einsum("fi,fi->f", self.interpolate(u_star) + c * grad_p_f, self.S)
-                             - c * (self.a * (p[self.N] - p[self.P]) + self.nonorthogonal(grad_p_f)))
         outlet = self.kind == OUTLET
+        B = self.B[outlet]
+        if penalty_rate is None:
+            flux_star[:n_int] = (np.einsum("fi,fi->f", self.interpolate(u_star) + c * grad_p_f, self.S)
+                                 - c * (self.a * (p[self.N] - p[self.P]) + self.nonorthogonal(grad_p_f)))
+            d_b = c
+        else:
+            # the Rhie–Chow coefficient is the predictor's response to a pressure gradient,
+            # d = dt/ρ / (1 + κ dt): with dt/ρ a penalized cell's gradient came back into the flux
+            # dt/ρ-strong, a pressure diffusion ∝ dt across a particle's surface that lowered its drag
+            d = c / (1.0 + penalty_rate * dt)
+            flux_star[:n_int] = (np.einsum("fi,fi->f", self.interpolate(u_star + d[:, None] * grad_p), self.S)
+                                 - self.interpolate(d) * (self.a * (p[self.N] - p[self.P])
+                                                          + self.nonorthogonal(grad_p_f)))
+            d_b = d[B]
         flux_star[n_int:] = self.flux_fixed
         if outlet.any():
-            B = self.B[outlet]
-            flux_star[n_int:][outlet] = (np.einsum("fi,fi->f", u_star[B] + c * grad_p[B], self.S_b[outlet])
-                                         - c * (self.a_b[outlet] * (self.p_out[outlet] - p[B])
-                                                + self.nonorthogonal(grad_p[B], outlet)))
+            flux_star[n_int:][outlet] = (np.einsum("fi,fi->f", u_star[B] + np.reshape(d_b, (-1, 1)) * grad_p[B],
+                                                   self.S_b[outlet])
+                                         - d_b * (self.a_b[outlet] * (self.p_out[outlet] - p[B])
+                                                  + self.nonorthogonal(grad_p[B], outlet)))
         correction = np.zeros(self.n_local)
         divergence = self.D @ flux_star
         if volume_source is not None:
@@ -348,9 +365,13 @@ class FlowSolver:
                 extra[:n_int] = c * np.einsum("fi,fi->f", self.k, self.interpolate(grad_c))
         return Projection(flux_star - extra, correction, iterations)
 
-    def correct(self, state: FluidState, u_star: np.ndarray, projection: Projection, dt: float) -> FluidState:
-        """Collective. The new flow (stage 4): F = F* − dt/ρ (a_f Δp' + k_f·∇̄p'), u = u* − dt/ρ ∇p',
-        p = pⁿ + p', ghost rows current."""
+    def correct(self, state: FluidState, u_star: np.ndarray, projection: Projection, dt: float,
+                penalty_rate: np.ndarray | None = None) -> FluidState:
+        """Collective. The new flow (stage 4): F = F* − dt/ρ (a_f Δp' + k_f·∇̄p'), u = u* − d ∇p',
+        p = pⁿ + p', ghost rows current; d = dt/ρ, or dt/ρ / (1 + κ dt) where ``penalty_rate`` κ
+        (n_local,) penalizes a cell: the implicit penalty damps the correction as it damped the
+        predictor's response (undamped, each step's p' kicked the fluid inside an accelerating
+        particle)."""
         c, n_int = dt / self.rho, self.n_interior
         correction = projection.correction
         outlet = self.kind == OUTLET
@@ -359,7 +380,10 @@ class FlowSolver:
         if outlet.any():
             flux[n_int:][outlet] -= c * self.a_b[outlet] * (0.0 - correction[self.B[outlet]])
         grad_c = self.gradient(correction, np.where(outlet, 0.0, correction[self.B]))
-        u = u_star - c * grad_c
+        if penalty_rate is None:
+            u = u_star - c * grad_c
+        else:
+            u = u_star - (c / (1.0 + penalty_rate * dt))[:, None] * grad_c
         p = state.p + correction
         self.mesh.update_ghosts(u)
         self.mesh.update_ghosts(p)

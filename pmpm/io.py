@@ -24,7 +24,7 @@ from .mesh import VTK_ORDER  # noqa: E402
 from .parallel import agree  # noqa: E402
 
 XDMF_TOPOLOGY = {"hex": "Hexahedron", "tet": "Tetrahedron"}
-RESULT_FILES = ("particles.csv", "fields.h5", "fields.xdmf", "summary.json", "checkpoint.h5")
+RESULT_FILES = ("particles.csv", "fields.h5", "fields.xdmf", "summary.json", "checkpoint.h5", "bodies.csv")
 # partial writes an interrupted run leaves (the files above are replaced from them atomically)
 LEFTOVER_FILES = ("checkpoint.h5.tmp", "summary.json.tmp", "fields.xdmf.tmp")
 
@@ -275,17 +275,41 @@ class ParticleWriter:
             np.savetxt(f, table, fmt=formats, delimiter=",")
 
 
+class BodyWriter:
+    """bodies.csv: the fluid's force and torque on each [[body]], one row per body per output time
+    (rank 0 writes; the forces are the same on every rank)."""
+
+    COLUMNS = ("time", "body", "fx", "fy", "fz", "tx", "ty", "tz")
+
+    def __init__(self, comm, folder: Path, names: tuple[str, ...]):
+        self.comm, self.names, self.path = comm, names, folder / "bodies.csv"
+        if comm.rank == 0:
+            with open(self.path, "x") as f:
+                f.write(",".join(self.COLUMNS) + "\n")
+
+    def write(self, time: float, forces) -> None:
+        if self.comm.rank != 0 or forces is None:
+            return
+        with open(self.path, "a") as f:
+            for name, row in zip(self.names, forces):
+                f.write(f"{time:.9g},{name}," + ",".join(f"{value:.12g}" for value in row) + "\n")
+
+
 @dataclass
 class Writers:
-    """The files of one output time: particles.csv rows and a fields.h5 group. Collective."""
+    """The files of one output time: particles.csv rows, a fields.h5 group, bodies.csv rows.
+    Collective."""
 
     particles: ParticleWriter
     fields: FieldWriter
     with_fluid: bool
+    bodies: BodyWriter | None = None
 
     @classmethod
-    def open(cls, comm, folder: Path, mesh, with_fluid: bool) -> "Writers":
-        return cls(ParticleWriter(comm, folder, with_fluid), FieldWriter(comm, folder, mesh, with_fluid), with_fluid)
+    def open(cls, comm, folder: Path, mesh, with_fluid: bool, body_names: tuple[str, ...] = ()) -> "Writers":
+        bodies = BodyWriter(comm, folder, body_names) if with_fluid and body_names else None
+        return cls(ParticleWriter(comm, folder, with_fluid), FieldWriter(comm, folder, mesh, with_fluid), with_fluid,
+                   bodies)
 
     def write(self, state) -> None:
         """Collective. One output time of a ``pmpm.state.RunState``."""
@@ -297,6 +321,8 @@ class Writers:
         arrays = {"id": particles.id, "position": particles.x, "velocity": particles.v,
                   "angular_velocity": particles.omega, "radius": particles.radius, "density": particles.density}
         self.fields.write(state.time, fields, arrays)
+        if self.bodies is not None:
+            self.bodies.write(state.time, state.body_forces)
 
 
 def write_summary(comm, folder: Path, summary: dict) -> None:

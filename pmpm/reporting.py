@@ -81,13 +81,60 @@ def describe_flow(model, state) -> str:
                    f"(above max_cfl = {run.max_cfl:g}); the explicit convection may go unstable")
     diffusion = comm.allreduce(fluid.viscosity / fluid.density * run.dt / h ** 2, op=MPI.MAX)
     if diffusion > 1 and (len(state.particles) or model.injectors) and comm.rank == 0:
-        warn(comm, f"[run] dt = {run.dt:g} s gives ν dt/h² = {diffusion:.3g}: above 1 the drag on moving "
-                   "particles falls with dt (docs/coupling.md); a smaller dt keeps it")
+        warn(comm, f"[run] dt = {run.dt:g} s gives ν dt/h² = {diffusion:.3g}: above 1 the drag on particles "
+                   "falls with dt, the more so the fewer cells per diameter (docs/coupling.md); a smaller dt keeps it")
+    warn_outside_validation(model, state, float(np.linalg.norm(flow.u_fixed, axis=1).max(initial=0.0)))
     coupling = case.coupling
     return (f"  flow:      ρ = {fluid.density:g} kg/m³, μ = {fluid.viscosity:g} Pa s, {fluid.convection} "
             f"convection, CFL at boundary speeds {cfl:.2f}, ν dt/h² {diffusion:.3g}; coupling "
             f"{coupling.mode}, {coupling.forcing} forcing, {coupling.volume_fraction} volume fraction, "
             f"{coupling.update} update, {coupling.forcing_passes} forcing passes")
+
+
+def warn_outside_validation(model, state, boundary_speed: float) -> None:
+    """Collective. Warn where particles are resolved more coarsely, or may meet the flow at a higher
+    Reynolds number, than the coupling was validated for (bench/drag_curve.py, docs/coupling.md):
+    fewer than 3 cells per diameter; Re above 1000; Re above (d/h)², where the boundary layer, about
+    d/√Re thick, is thinner than a cell and the drag comes out too high. The relative speed is
+    bounded by the boundary velocities, the particles' own and their settling speed in still fluid
+    (Schiller–Naumann)."""
+    from .reference import terminal_velocity
+
+    comm, mesh, flow, fluid = model.comm, model.mesh, model.flow, model.case.fluid
+    particles, injectors = state.particles, model.injectors
+    boundary_speed = comm.allreduce(boundary_speed, op=MPI.MAX)
+    h_max = comm.allreduce(float(flow.h[:mesh.n_owned_cells].max(initial=0.0)), op=MPI.MAX)
+    gravity = float(np.linalg.norm(model.case.run.gravity))
+    # present particles: h of the cell holding the centre; injected ones: the coarsest cell
+    cells = mesh.find_owned_cells(particles.x)
+    h = np.where(cells >= 0, flow.h[np.maximum(cells, 0)], 0.0)
+    if comm.size > 1:
+        comm.Allreduce(MPI.IN_PLACE, h, op=MPI.MAX)
+    diameter = np.concatenate([2 * particles.radius, [2 * i.section.radius for i in injectors]])
+    density = np.concatenate([particles.density, [i.section.density for i in injectors]])
+    own_speed = np.concatenate([np.linalg.norm(particles.v, axis=1),
+                                [np.linalg.norm(i.section.velocity) for i in injectors]])
+    free = np.concatenate([particles.motion == 0, np.ones(len(injectors), bool)])
+    h = np.concatenate([np.where(h > 0, h, h_max), np.full(len(injectors), h_max)])
+    if not len(diameter) or comm.rank:
+        return
+    settling = np.zeros(len(diameter))
+    sinking = free & (density != fluid.density) & (gravity > 0)
+    settling[sinking] = terminal_velocity(density[sinking], fluid.density, fluid.viscosity, diameter[sinking], gravity)
+    reynolds = fluid.density * np.maximum.reduce([np.full(len(diameter), boundary_speed), own_speed, settling]) \
+        * diameter / fluid.viscosity
+    resolution = diameter / h
+    if resolution.min() < 3:
+        warn(comm, f"{int((resolution < 3).sum())} particle(s) span fewer than 3 cells per diameter (down to "
+                   f"{resolution.min():.2g}): the coupling's drag and blockage are validated from 3 on (docs/coupling.md)")
+    worst = int(np.argmax(reynolds / resolution ** 2))
+    if reynolds.max() > 1000:
+        warn(comm, f"particles may meet the flow at Re ≈ {reynolds.max():.3g} (boundary, particle and settling speeds): "
+                   "the drag is validated up to Re 1000 (docs/coupling.md)")
+    elif reynolds[worst] > resolution[worst] ** 2:
+        warn(comm, f"particles may meet the flow at Re ≈ {reynolds[worst]:.3g} on {resolution[worst]:.2g} cells per "
+                   "diameter: above Re = (d/h)² the boundary layer (≈ d/√Re) is thinner than a cell and the drag "
+                   "comes out too high (docs/coupling.md: its error by Re and resolution)")
 
 
 def warn_once(comm, message: str) -> None:
@@ -116,6 +163,9 @@ def diagnostics(model, state) -> dict:
         result["collisions"] = dict(state.collision_totals)
     if model.injectors:
         result["injection"] = {"placed": 0, "retried": 0, "dropped": 0, **state.injection_counts}
+    if state.body_forces is not None:
+        result["body_forces"] = {body.name: {"force": row[:3], "torque": row[3:]}
+                                 for body, row in zip(model.bodies, state.body_forces)}
     if model.flow is not None:
         flow, fluid, mesh = model.flow, state.fluid, model.mesh
         owned = slice(0, mesh.n_owned_cells)

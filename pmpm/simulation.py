@@ -16,10 +16,12 @@ import numpy as np
 from mpi4py import MPI
 
 from . import checkpoint, checks, io, reporting
+from .bodies import Body, build_bodies
 from .case import Case, case_path, load_case, suggest
 from .collisions import (CollisionSettings, advance_with_collisions, build_walls, check_initial_particles,
                          collision_settings)
 from .coupling import CouplingMemory, External, PatchForcing, PenaltyForcing, build_forcing, volume_fraction
+from .coupling.bodies import BodyForcing
 from .errors import CaseError, NumericalError, Stopped
 from .fluid import FlowSolver
 from .forces import field_forces_of_case, gravity_buoyancy
@@ -38,8 +40,9 @@ from .state import RunState
 # ----------------------------------------------------------------------------------------------
 @dataclass(frozen=True)
 class Model:
-    """What a case asks for, built once: mesh, flow solver, forcing, injectors, contact settings
-    (None where the case's section is absent). Collective objects keep ``comm``."""
+    """What a case asks for, built once: mesh, flow solver, forcing, injectors, contact settings,
+    immersed bodies and their forcing (None where the case's section is absent). Collective
+    objects keep ``comm``."""
 
     comm: object
     case: Case
@@ -48,6 +51,8 @@ class Model:
     forcing: PenaltyForcing | PatchForcing | None
     injectors: tuple[Injector, ...]
     contact_settings: CollisionSettings | None
+    bodies: tuple[Body, ...] = ()
+    body_forcing: BodyForcing | None = None
 
     @property
     def fluid_density(self) -> float:
@@ -57,7 +62,8 @@ class Model:
 def build_mesh(comm, case: Case) -> Mesh:
     """Collective. The case's mesh, distributed over ``comm``."""
     if case.box is not None:
-        return Mesh.from_box(comm, case.box.lower, case.box.upper, case.box.cells, case.mesh.cell_type)
+        patches = [(p.name, p.side, p.lower, p.upper) for p in case.patches]
+        return Mesh.from_box(comm, case.box.lower, case.box.upper, case.box.cells, case.mesh.cell_type, patches)
     return Mesh.from_file(comm, case.resolve(case.mesh.file))
 
 
@@ -74,12 +80,15 @@ def check_boundaries(case: Case, mesh: Mesh) -> None:
 
 def build_model(comm, case: Case, mesh: Mesh) -> Model:
     """Collective. The pieces of ``case`` on ``mesh``."""
-    flow = forcing = None
+    flow = forcing = body_forcing = None
+    bodies = build_bodies(case)
     if case.fluid is not None:
         flow = FlowSolver(mesh, case.fluid, case.boundaries)
         forcing = build_forcing(mesh, case.coupling, case.fluid)
+        if bodies:
+            body_forcing = BodyForcing(mesh, bodies, case.coupling, case.fluid.density, case.fluid.viscosity)
     return Model(comm, case, mesh, flow, forcing, build_injectors(case),
-                 collision_settings(case) if case.collisions else None)
+                 collision_settings(case) if case.collisions else None, bodies, body_forcing)
 
 
 def initial_state(model: Model) -> RunState:
@@ -173,10 +182,11 @@ def flow_stage(model: Model, state: RunState, external: External, dt: float, tim
                injected: np.ndarray | None = None) -> RunState:
     """Collective. Steps 2–5: the particles' touched cells, the flow advanced with their forcing
     (``forcing_passes`` momentum solves, the forcing updating its guess of the particles' motion
-    after each), the projection, and the fluid's force and torque on each particle. Particles
-    ``injected`` this step (bool mask) displace their volume of fluid, which the projection
-    makes leave through the outlets."""
-    flow, forcing, particles = model.flow, model.forcing, state.particles
+    after each), the projection, and the fluid's force and torque on each particle; the bodies'
+    prescribed motion enters the same solves, and the fluid's force on each body comes out.
+    Particles ``injected`` this step (bool mask) displace their volume of fluid, which the
+    projection makes leave through the outlets."""
+    flow, forcing, particles, bodies = model.flow, model.forcing, state.particles, model.body_forcing
     n_owned = model.mesh.n_owned_cells
     step, time = state.step, state.time
     coupled = len(particles) > 0
@@ -187,6 +197,9 @@ def flow_stage(model: Model, state: RunState, external: External, dt: float, tim
         displaced = displaced_volume(model, particles, touched, injected, dt)
         if coupled:
             forcing_state, fluid = forcing.begin(particles, touched, fluid, state.coupling, dt)
+        if bodies is not None:   # where the bodies are at the step's end, moving as prescribed
+            body_state = bodies.begin(time + dt, fluid.u)
+            body_diagonal, body_target = bodies.implicit_terms(body_state)
     with times.stage("flow"):
         predicted = flow.predictor(fluid, dt)
     rhs, u_star = predicted.rhs, fluid.u
@@ -195,6 +208,9 @@ def flow_stage(model: Model, state: RunState, external: External, dt: float, tim
         if coupled:
             with times.stage("coupling"):
                 diagonal, target = forcing.implicit_terms(particles, forcing_state)
+        if bodies is not None:
+            diagonal = body_diagonal if diagonal is None else diagonal + body_diagonal
+            target = body_target if target is None else target + body_target
         with times.stage("flow"):
             u_star = flow.solve_momentum(rhs if target is None else plus_owned(rhs, target), u_star, dt, step, time,
                                          extra_diagonal=diagonal)
@@ -204,11 +220,19 @@ def flow_stage(model: Model, state: RunState, external: External, dt: float, tim
             if source is not None and forcing_pass < passes - 1:
                 rhs = plus_owned(rhs, source)
     with times.stage("flow"):
-        projection = flow.project(fluid, u_star, predicted, dt, step, time, volume_source=displaced)
-        fluid = flow.correct(fluid, u_star, projection, dt)
+        rate = None
+        if diagonal is not None:   # the penalty of the last solve damps the pressure's terms in its cells
+            rate = np.zeros(model.mesh.n_local_cells)
+            rate[:n_owned] = diagonal / model.mesh.cell_volume[:n_owned]
+            model.mesh.update_ghosts(rate)
+        projection = flow.project(fluid, u_star, predicted, dt, step, time, volume_source=displaced, penalty_rate=rate)
+        fluid = flow.correct(fluid, u_star, projection, dt, penalty_rate=rate)
     with times.stage("coupling"):
         fractions = np.zeros(model.mesh.n_local_cells)
         fractions[:n_owned] = volume_fraction(touched, n_owned)
+        if bodies is not None:
+            fractions[:n_owned] = np.minimum(fractions[:n_owned] + bodies.volume_fraction(body_state), 1.0)
+            state = replace(state, body_forces=bodies.forces(body_state, fluid.u, time + dt))
         state = replace(state, fluid=fluid, volume_fraction=fractions,
                         pressure_iterations=state.pressure_iterations + projection.iterations)
         if coupled:
@@ -319,7 +343,8 @@ class Simulation:
         on a numerical failure or a diverging flow (``NumericalError``) the last good state is
         written first."""
         model, run = self.model, self.model.case.run
-        writers = io.Writers.open(self.comm, output, model.mesh, model.flow is not None)
+        writers = io.Writers.open(self.comm, output, model.mesh, model.flow is not None,
+                                  tuple(body.name for body in model.bodies))
         progress = reporting.Progress(self.comm, run.end_time, self.quiet, start_time=self.state.time)
         started = wallclock.perf_counter()
         writers.write(self.state)

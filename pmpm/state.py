@@ -37,6 +37,8 @@ class RunState:
     walls : the wall triangles as they are now (rigid walls move), or None when no model needs them
     collision_totals : collision counts summed over the run (``pmpm.collisions``)
     pressure_iterations : pressure KSP iterations summed over the run
+    body_forces : (n_bodies, 6) the fluid's force (N) and torque (N m) on each [[body]] over the last
+        step, or None
     """
 
     time: float
@@ -57,3 +59,4 @@ class RunState:
     walls: Walls | None = None
     collision_totals: dict = field(default_factory=dict)
     pressure_iterations: int = 0
+    body_forces: np.ndarray | None = None

@@ -196,7 +196,8 @@ def test_petsc_options_reach_the_solver_and_failure_exits_3(tmp_path):
     folder = make_case(tmp_path, FLOW)
     result = run_pmpm([folder, "--quiet", "-pressure_ksp_max_it", "1", "-pressure_ksp_rtol", "1e-14"])
     assert result.returncode == 3, result.stderr
-    lines = [line for line in result.stderr.splitlines() if line.strip()]
+    # the start-up warnings (this coarse scene's particles span 1–2 cells) are not the failure's line
+    lines = [line for line in result.stderr.splitlines() if line.strip() and not line.startswith("pmpm: warning:")]
     assert len(lines) == 1 and "pressure solve did not converge at step" in lines[0], result.stderr
     assert "pc_type" in lines[0] and "Traceback" not in result.stderr
     # the last good state (here the initial one) was written before stopping

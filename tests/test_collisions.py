@@ -545,9 +545,10 @@ class FakeMesh:
 
 
 def test_build_walls_and_settings():
-    """Walls: unlisted boundaries are fixed walls; inlets are left out; overrides and deposition."""
+    """Walls: unlisted boundaries are fixed walls; an inlet that lets particles pass is left out;
+    overrides and deposition."""
     case = fake_case(
-        boundaries={"xmin": Section({"type": "inlet"}),
+        boundaries={"xmin": Section({"type": "inlet", "particles": "pass"}),
                     "zmin": Section({"type": "wall", "restitution": 0.2, "friction": None, "rolling_friction": None,
                                      "velocity": (1.0, 0, 0), "angular_velocity": (0, 0, 0),
                                      "center": (0, 0, 0), "motion": "surface"}),

@@ -18,7 +18,8 @@ from pmpm.__main__ import main
 from pmpm.case import ARRAY_TABLES, SCHEMA
 from test_cli import run_pmpm
 
-# small on purpose: any mutation of it that stays valid builds in well under a second
+# small on purpose: any mutation of it that stays valid builds in well under a second; within the
+# coupling's validated range (4 and 3.2 cells per diameter, Re ≈ 1), so it warns of nothing
 BASE = """[run]
 end_time = 0.02
 dt = 0.005
@@ -26,10 +27,10 @@ output_every = 0.01
 checkpoint_every = 0.01
 gravity = [0.0, 0.0, -9.81]
 [mesh]
-box = { lower = [0, 0, 0], upper = [0.1, 0.1, 0.1], cells = [3, 3, 3] }
+box = { lower = [0, 0, 0], upper = [0.1, 0.1, 0.1], cells = [20, 20, 20] }
 [fluid]
 density = 1000.0
-viscosity = 0.01
+viscosity = 1.0
 [boundary.xmin]
 type = "inlet"
 velocity = [0.01, 0.0, 0.0]
@@ -46,7 +47,7 @@ kind = "random"
 lower = [0.02, 0.02, 0.06]
 upper = [0.08, 0.08, 0.08]
 interval = 0.01
-radius = 0.005
+radius = 0.008
 density = 1500.0
 [deposition]
 zones = ["zmin"]

@@ -215,12 +215,13 @@ def wall_distances(x: np.ndarray, walls: Walls, reach) -> np.ndarray:
 def build_walls(case, mesh) -> Walls:
     """Collective. The wall triangles of the case's mesh with their coefficients and motion.
 
-    Wall boundaries: those of type "wall" and those not listed in the case (a fixed wall).
-    Coefficients default to [collisions] (or 0.9 / 0.3 / 0.0 without it); [deposition] zones
-    name the walls where particles stick.
+    The boundaries particles meet as walls (``particles_bounce``): walls (listed or not), inlets (a
+    distributor plate) and symmetry planes, unless ``particles = "pass"``; outlets only with
+    ``particles = "wall"``. Coefficients default to [collisions] (or 0.9 / 0.3 / 0.0 without it);
+    [deposition] zones name the walls where particles stick. Only a wall's own motion moves it
+    (an inlet's velocity is the fluid's).
     """
-    names = [name for name in mesh.boundary_names
-             if name not in case.boundaries or case.boundaries[name].type == "wall"]
+    names = [name for name in mesh.boundary_names if particles_bounce(case.boundaries.get(name))]
     triangles, boundary, normal = mesh.boundary_triangles(names)
     walls = Walls.from_triangles(np.reshape(triangles, (-1, 3, 3)), normal=np.reshape(normal, (-1, 3)),
                                  boundary=boundary, names=tuple(mesh.boundary_names))
@@ -234,10 +235,20 @@ def build_walls(case, mesh) -> Walls:
         for key in ("restitution", "friction", "rolling_friction"):
             value = getattr(section, key) if section is not None else None
             getattr(walls, key)[rows] = defaults[key] if value is None else value
-        if section is not None:
+        if section is not None and section.type == "wall":
             walls.velocity[rows] = section.velocity
             walls.angular_velocity[rows] = section.angular_velocity
             walls.center[rows] = section.center
             walls.rigid[rows] = section.motion == "rigid"
         walls.deposition[rows] = name in zones
     return walls
+
+
+def particles_bounce(section) -> bool:
+    """Whether particles meet a boundary (its case section, None: an unlisted wall) as a wall."""
+    if section is None:
+        return True
+    choice = getattr(section, "particles", None)
+    if choice is not None:
+        return choice == "wall"
+    return section.type != "outlet"

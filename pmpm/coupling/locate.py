@@ -141,7 +141,7 @@ def smooth_fraction(mesh, h2: np.ndarray, state: ParticleState, touched: Touched
     ``h2``: h² per owned cell (n_owned,); ``x``: the particles' centres, if not where ``state`` has them."""
     r = mesh.cell_center[touched.cell] - (state.x if x is None else x)[touched.particle]
     distance = np.maximum(np.linalg.norm(r, axis=1), 1e-300)
-    extent = np.sqrt(h2[touched.cell]) * np.abs(r).sum(axis=1) / distance
+    extent = np.maximum(np.sqrt(h2[touched.cell]) * np.abs(r).sum(axis=1) / distance, 1e-300)
     fraction = np.clip(0.5 - (distance - state.radius[touched.particle]) / extent, 0.0, 1.0)
     if not shared:
         return fraction

@@ -1,13 +1,16 @@
 """The penalty forcing (``[coupling] forcing = "penalty"``, the default).
 
 A penalty κ (U − u) drives the fluid in a touched cell towards the particle's rigid motion
-U = V + ω × r, with κ = s α/(1 − α) ν/h² (``penalty_strength`` s, α the cell's volume fraction),
-solved implicitly with the diffusion of the momentum predictor (V κ on the diagonal, V κ U on the
-right-hand side: ``implicit_terms``). In a cut cell it balances the fluid's own viscous exchange,
-a balance without dt in it, so the forces do not depend on the time step.
+U = V + ω × r, solved implicitly with the diffusion of the momentum predictor (V κ on the
+diagonal, V κ U on the right-hand side: ``implicit_terms``; the flow solver damps its pressure
+terms in those cells by 1/(1 + κ dt) as well). Its rate has two parts (``penalty_rates``): the
+solid's friction s α/(1 − α) ν/h² (``penalty_strength`` s, α the cell's volume fraction), which in
+a cut cell balances the fluid's own viscous exchange, a balance without dt in it, so the forces
+hardly depend on the time step; and a blockage rate (1000/6) α⁸ U_rel/h that stops, in the cells
+a particle fills, the flow the pressure drives through it, whatever the cell Reynolds number.
 
-The impulse on a particle is what the penalty took from the fluid, J = Σ ρ V κ dt (u − U), plus the
-change ΔP of the momentum of the fluid under it, over a control volume that moves with the particle
+The impulse on a particle is what the penalty took from the fluid, J = Σ ρ V κ dt (u − U) at the
+projected u, plus the change ΔP of the momentum of the fluid under it, over a control volume that moves with the particle
 (``begin``: from where the last step left it). Each pass before the projection updates the guess of
 the particle's new motion, damped by the cells' own response so that light particles converge
 (``after_solve``); after the projection the step's impulse gives its velocities, drag and torque
@@ -18,6 +21,7 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 
 import numpy as np
+from mpi4py import MPI
 
 from ..fluid import FluidState
 from ..particles import ParticleState
@@ -28,6 +32,15 @@ from .update import Exchange, External, damped_change, damped_guess, hydrodynami
 
 PENALTY_CAP = 1e3   # κ h²/ν of a cell wholly inside a particle: rigid to ~1e-3 of its neighbours' pull;
                     # larger caps inflate ‖b‖ of the momentum solves, whose rtol is relative to it
+
+
+def cell_rate(covered: np.ndarray, speed: np.ndarray, nu: float, h2: np.ndarray, strength: float) -> np.ndarray:
+    """κ (1/s) of cells a solid covers by the fractions ``covered`` (≤ 1), met by the flow at
+    ``speed`` (m/s), of squared size ``h2`` (m²): friction min(s α/(1 − α), 1000) ν/h² plus blockage
+    (1000/6) α⁸ speed/h (``PenaltyForcing.penalty_rates``)."""
+    friction = np.minimum(strength * covered / np.maximum(1.0 - covered, 1e-300), PENALTY_CAP)
+    blockage = PENALTY_CAP / 6.0 * covered ** 8 * speed / np.sqrt(h2)
+    return friction * nu / h2 + blockage
 
 
 @dataclass(frozen=True)
@@ -41,7 +54,8 @@ class PenaltyPasses:
     internal_start : (n, 6) the fluid momentum under each particle at the step's start, with its moment
     guess_v, guess_omega : (n, 3) the motion the next solve drives the fluid towards
     solved_v, solved_omega : (n, 3) the motion the last solve drove it towards
-    exchanged : (n, 6) J of the last solve; response, response_spin : (n,) the cells' response M_c
+    exchanged : (n, 6) J of the last solve; response, response_spin : (n,) the cells' response M_c;
+    exchange_weight : (m,) ρ V × the rate of the exchange per pair (J = Σ weight (u − U))
     """
 
     touched: Touched
@@ -56,6 +70,7 @@ class PenaltyPasses:
     exchanged: np.ndarray | None = None
     response: np.ndarray | None = None
     response_spin: np.ndarray | None = None
+    exchange_weight: np.ndarray | None = None
 
 
 class PenaltyForcing:
@@ -92,7 +107,7 @@ class PenaltyForcing:
         set of cells instead, the fluid a moving sphere sweeps up ahead and leaves behind gave it a
         thrust. "Under" weighs each cell by a smooth fraction, not α, whose jumps as sample points
         cross the surface made light particles ring. The flow is returned as it came."""
-        kappa = self.penalty_rates(touched)
+        kappa = self.penalty_rates(touched, self.relative_speed(state, touched, fluid.u))
         under_mass = self.rho * smooth_fraction(self.mesh, self.locator.h2, state, touched) \
             * self.mesh.cell_volume[touched.cell]
         internal_start, under_scale = self.fluid_under(state, touched, fluid.u, under_mass)
@@ -106,13 +121,34 @@ class PenaltyForcing:
             internal_start[same] = start
         return PenaltyPasses(touched, kappa, under_mass, under_scale, internal_start, state.v, state.omega), fluid
 
-    def penalty_rates(self, touched: Touched) -> np.ndarray:
-        """κ (1/s) of each (particle, cell) pair: the cell's rate κ(α) = s α/(1 − α) ν/h² with α the
-        cell's total volume fraction, shared among the particles in it by their α."""
+    def penalty_rates(self, touched: Touched, speed: np.ndarray) -> np.ndarray:
+        """κ (1/s) of each (particle, cell) pair, from the cell's total volume fraction α, shared among
+        the particles in it by their α:
+
+            κ = min(s α/(1 − α), 1000) ν/h²  +  (1000/6) α⁸ |u − U|_max / h.
+
+        The first term is the solid's viscous friction on the fluid in the cell (s =
+        ``penalty_strength``, fitted on the Stokes drag): it sets where the particle's surface lies,
+        without dt. The second is the blockage: a cell the particle fills must stop the flow that the
+        pressure drives through it, ∇p/ρ ~ |u − U|²/d, faster than convection brings it; ``speed``
+        (n,) |u − U|_max is each particle's (``relative_speed``). A cell wholly inside gets 167 times
+        either exchange rate with its neighbours (6 ν/h² by diffusion, |u − U|/h by convection); α⁸
+        leaves the friction of the cut cells viscous, so the surface stays where the Stokes fit put it."""
         total = alpha_per_cell(touched, self.mesh.n_owned_cells)[touched.cell]
-        covered = np.minimum(total, 1.0)
-        strength = np.minimum(self.strength * covered / np.maximum(1.0 - covered, 1e-300), PENALTY_CAP)
-        return strength * self.nu / self.locator.h2[touched.cell] * touched.alpha / np.maximum(total, 1e-300)
+        rate = cell_rate(np.minimum(total, 1.0), speed[touched.particle], self.nu, self.locator.h2[touched.cell],
+                         self.strength)
+        return rate * touched.alpha / np.maximum(total, 1e-300)
+
+    def relative_speed(self, state: ParticleState, touched: Touched, u: np.ndarray) -> np.ndarray:
+        """Collective. (n,) the largest |u − U| (m/s) over each particle's touched cells at the step's
+        start, U its rigid motion: the speed at which the flow meets it, for the blockage rate."""
+        p, c = touched.particle, touched.cell
+        rigid = state.v[p] + np.cross(state.omega[p], self.mesh.cell_center[c] - state.x[p])
+        speed = np.zeros(len(state))
+        np.maximum.at(speed, p, np.linalg.norm(u[c] - rigid, axis=1))
+        if self.comm.size > 1:
+            self.comm.Allreduce(MPI.IN_PLACE, speed, op=MPI.MAX)
+        return speed
 
     def implicit_terms(self, state: ParticleState, passes: PenaltyPasses):
         """Local. (V κ (n_owned,), V κ U (n_owned, 3)) per owned cell for the next momentum solve, U
@@ -154,11 +190,11 @@ class PenaltyForcing:
         # how much J falls when the particle speeds up, from each cell's own response: an upper
         # bound (diffusion to the neighbours, and ΔP, lower it), so the passes converge monotonically
         response = volume * kappa * dt / (1.0 + kappa_cell * dt)
+        weight = volume * rate
         response, response_spin, (exchanged, internal) = particle_sums(
-            self.comm, n, p, r, response, (volume * rate)[:, None] * (u_star[c] - rigid),
-            passes.under_mass[:, None] * u_star[c])
+            self.comm, n, p, r, response, weight[:, None] * (u_star[c] - rigid), passes.under_mass[:, None] * u_star[c])
         passes = replace(passes, solved_v=passes.guess_v, solved_omega=passes.guess_omega, exchanged=exchanged,
-                         response=response, response_spin=response_spin)
+                         response=response, response_spin=response_spin, exchange_weight=weight)
         if self.explicit:
             return u_star, None, passes
         impulse = exchanged + passes.under_scale[:, None] * internal - passes.internal_start   # J + ΔP
@@ -168,14 +204,23 @@ class PenaltyForcing:
 
     def after_projection(self, state: ParticleState, passes: PenaltyPasses, fluid: FluidState, external: External,
                          dt: float, memory: CouplingMemory, step: int, time: float) -> Exchange:
-        """Collective. The step's impulse J + ΔP, ΔP now with the projected velocities. Particles with
-        m ≥ M_c take it exactly (momentum conserved; M_c, not ρf V, decides: on coarse meshes it is
-        several times ρf V), lighter ones keep the damped update of the last pass (``update =
-        "explicit"``: always exactly)."""
+        """Collective. The step's impulse J + ΔP, ΔP now with the projected velocities, and (two-way)
+        J too: the projection's correction is damped by the implicit penalty like the predictor
+        (``FlowSolver.correct``), so the fluid gave up Σ ρ V κ dt (u − U) at the projected u.
+        Particles with m ≥ M_c take it exactly (momentum conserved; M_c, not ρf V, decides: on coarse
+        meshes it is several times ρf V), lighter ones keep the damped update of the last pass
+        (``update = "explicit"``: always exactly)."""
         n = len(state)
-        internal_end, _ = self.fluid_under(state, passes.touched, fluid.u, passes.under_mass)
+        exchanged = passes.exchanged
+        if self.two_way:
+            p, c = passes.touched.particle, passes.touched.cell
+            rigid = passes.solved_v[p] + np.cross(passes.solved_omega[p], self.mesh.cell_center[c] - state.x[p])
+            internal_end, _, exchanged = self.fluid_under(state, passes.touched, fluid.u, passes.under_mass,
+                                                          extra=passes.exchange_weight[:, None] * (fluid.u[c] - rigid))
+        else:
+            internal_end, _ = self.fluid_under(state, passes.touched, fluid.u, passes.under_mass)
         order = np.argsort(state.id)
-        impulse = passes.exchanged + internal_end - passes.internal_start
+        impulse = exchanged + internal_end - passes.internal_start
         m, inertia = state.mass, state.inertia
         exact = np.full(n, self.explicit) | (m >= passes.response)
         exact_spin = np.full(n, self.explicit) | (inertia >= passes.response_spin)
@@ -193,15 +238,18 @@ class PenaltyForcing:
         return Exchange(fluid, force, torque, memory)
 
     def fluid_under(self, state: ParticleState, touched: Touched, u: np.ndarray, mass: np.ndarray,
-                    x: np.ndarray | None = None):
+                    x: np.ndarray | None = None, extra: np.ndarray | None = None):
         """Collective. The momentum of the fluid under each particle, (n, 6): Σ m u over its pairs
         (``mass`` m = ρ f V, f the smooth fraction) and its moment about the centre, scaled to the
         sphere's own volume (Σ f V wobbles by ~1e-3 as the sphere moves, which in a uniform stream
         gave a particle an impulse out of nothing); and that scale (n,). ``x``: the centres, if not
-        where ``state`` has them."""
+        where ``state`` has them. ``extra``: a per-pair momentum (m, 3) summed, with its moment, in
+        the same reduction and returned third."""
         p, c = touched.particle, touched.cell
         x = state.x if x is None else x
-        covered, _, (momentum,) = particle_sums(self.comm, len(state), p, self.mesh.cell_center[c] - x[p], mass,
-                                                mass[:, None] * u[c])
+        covered, _, sums = particle_sums(self.comm, len(state), p, self.mesh.cell_center[c] - x[p], mass,
+                                         mass[:, None] * u[c], *(() if extra is None else (extra,)))
         scale = self.rho * state.volume / np.maximum(covered, np.finfo(float).tiny)
-        return scale[:, None] * momentum, scale
+        if extra is None:
+            return scale[:, None] * sums[0], scale
+        return scale[:, None] * sums[0], scale, sums[1]
