@@ -514,9 +514,9 @@ def check_consistency(case: Case) -> None:
                             + " and ".join(f"{key} = ..." for key in missing))
         if body.shape == "cylinder" and not any(body.axis):
             raise CaseError(f"{name}: [[body]] #{i}: axis = [0, 0, 0] has no direction")
-    if case.bodies and (case.fluid is None or case.collisions is not None):
-        raise CaseError(f"{name}: [[body]] drives the fluid only, for now: particles do not meet bodies yet; "
-                        "use it with [fluid] and without [collisions]")
+    if case.bodies and case.fluid is None and case.collisions is None:
+        raise CaseError(f"{name}: [[body]] acts on nothing without [fluid] (it drives the fluid) or [collisions] "
+                        "(particles bounce off it); add one of them")
     for i, inj in enumerate(case.injections):
         if inj.stop < inj.start:
             raise CaseError(f"{name}: [[injection]] #{i}: stop = {inj.stop} must be >= start = {inj.start}")

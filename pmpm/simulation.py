@@ -68,10 +68,11 @@ def build_mesh(comm, case: Case) -> Mesh:
 
 
 def check_boundaries(case: Case, mesh: Mesh) -> None:
-    """Every [boundary.<name>] and deposition zone must name a boundary of the mesh."""
+    """Every [boundary.<name>] and deposition zone must name a boundary of the mesh (a zone may name a body)."""
     names = list(mesh.boundary_names)
     listed = [(f"[boundary.{n}]", n) for n in case.boundaries]
-    listed += [("[deposition] zones", n) for n in (case.deposition.zones if case.deposition else ())]
+    bodies = {body.name for body in case.bodies}   # particles may stick to a named body too
+    listed += [("[deposition] zones", n) for n in (case.deposition.zones if case.deposition else ()) if n not in bodies]
     for where, name in listed:
         if name not in names:
             raise CaseError(f"{case.path.name}: {where}: the mesh has no boundary \"{name}\"{suggest(name, names)}"
@@ -95,7 +96,8 @@ def initial_state(model: Model) -> RunState:
     """Collective. The state at t = 0: fluid at rest, the case's particles (checked: inside the
     domain, not overlapping each other or a wall)."""
     case, mesh = model.case, model.mesh
-    walls = build_walls(case, mesh) if (case.collisions or case.field_forces or case.deposition) else None
+    walls = (build_walls(case, mesh, model.bodies) if (case.collisions or case.field_forces or case.deposition)
+             else None)
     fluid = model.flow.initial_state() if model.flow is not None else None
     state = RunState(0.0, 0, ParticleState.empty(), fluid, np.zeros((0, 3)), np.zeros((0, 3)),
                      np.zeros(mesh.n_local_cells) if fluid is not None else None, next_id=0, removed=0,

@@ -212,14 +212,16 @@ def wall_distances(x: np.ndarray, walls: Walls, reach) -> np.ndarray:
     return out
 
 
-def build_walls(case, mesh) -> Walls:
-    """Collective. The wall triangles of the case's mesh with their coefficients and motion.
+def build_walls(case, mesh, bodies=()) -> Walls:
+    """Collective. The wall triangles of the case's mesh and of its immersed bodies, with their
+    coefficients and motion.
 
     The boundaries particles meet as walls (``particles_bounce``): walls (listed or not), inlets (a
     distributor plate) and symmetry planes, unless ``particles = "pass"``; outlets only with
     ``particles = "wall"``. Coefficients default to [collisions] (or 0.9 / 0.3 / 0.0 without it);
     [deposition] zones name the walls where particles stick. Only a wall's own motion moves it
-    (an inlet's velocity is the fluid's).
+    (an inlet's velocity is the fluid's). Each body (``pmpm.bodies.Body``) adds its surface as
+    rigid triangles moving with it, after the mesh's boundaries in ``names``.
     """
     names = [name for name in mesh.boundary_names if particles_bounce(case.boundaries.get(name))]
     triangles, boundary, normal = mesh.boundary_triangles(names)
@@ -241,7 +243,26 @@ def build_walls(case, mesh) -> Walls:
             walls.center[rows] = section.center
             walls.rigid[rows] = section.motion == "rigid"
         walls.deposition[rows] = name in zones
-    return walls
+    return with_bodies(walls, bodies, defaults, zones)
+
+
+def with_bodies(walls: Walls, bodies, defaults: dict, zones=frozenset()) -> Walls:
+    """``walls`` and the surfaces of ``bodies`` (at t = 0, wound outwards: the normal points to the
+    particles' side), each a rigid wall moving as its body: V, and Ω about its rotation centre."""
+    if not bodies:
+        return walls
+    first = len(walls.names)
+    parts = [walls]
+    for index, body in enumerate(bodies):
+        coefficients = {key: defaults[key] if getattr(body, key) is None else getattr(body, key)
+                        for key in ("restitution", "friction", "rolling_friction")}
+        parts.append(Walls.from_triangles(body.triangles, boundary=first + index, velocity=body.velocity,
+                                          angular_velocity=body.angular_velocity, center=body.rotation_center,
+                                          rigid=True, deposition=body.name in zones, **coefficients))
+    fields = {name: np.concatenate([getattr(part, name) for part in parts])
+              for name in ("a", "b", "c", "normal", "boundary", "restitution", "friction", "rolling_friction",
+                           "velocity", "angular_velocity", "center", "rigid", "deposition")}
+    return Walls(**fields, names=walls.names + tuple(body.name for body in bodies))
 
 
 def particles_bounce(section) -> bool:
