@@ -188,6 +188,8 @@ class Frame:
         The coloured field in the cells the plane cuts.
     slice_velocity : ndarray, shape (n_slice_cells, 3) or None
         Fluid velocity in those cells (m/s), for vectors.
+    slice_solid : ndarray, shape (n_slice_cells,) of bool, or None
+        The cells on the slice at least half filled by particles or immersed bodies.
     """
 
     time: float
@@ -196,6 +198,7 @@ class Frame:
     radius: np.ndarray
     slice_values: np.ndarray | None
     slice_velocity: np.ndarray | None
+    slice_solid: np.ndarray | None = None
 
 
 def read_frame(run: RunOutput, index: int, slice_cells: np.ndarray, field: str | None, vectors: bool) -> Frame:
@@ -210,11 +213,13 @@ def read_frame(run: RunOutput, index: int, slice_cells: np.ndarray, field: str |
             radius = particles["radius"][...].reshape(-1)
             slice_velocity = group["velocity"][...][slice_cells] if (vectors or field == "speed") else None
             values = group[field][...][slice_cells] if field not in (None, "speed") else None
+            solid = (group["volume_fraction"][...][slice_cells] >= 0.5
+                     if len(slice_cells) and "volume_fraction" in run.cell_fields else None)
         except KeyError as error:   # a run killed while writing this time
             raise CaseError(f"render: {run.path}: /{run.groups[index]} is incomplete ({error})") from None
     if field == "speed":
         values = np.linalg.norm(slice_velocity, axis=1)
-    return Frame(float(run.times[index]), position, velocity, radius, values, slice_velocity)
+    return Frame(float(run.times[index]), position, velocity, radius, values, slice_velocity, solid)
 
 
 def colour_limits(values: list[np.ndarray], robust: bool, from_zero: bool = True) -> tuple[float, float]:
@@ -303,6 +308,8 @@ def render_frame(frame: Frame, run: RunOutput, view: View, plane_at: float, poly
     title = f"{run.name} — t = {frame.time:.4g} s\n{drawn}, view along {view.looking}"
     if options.vectors:
         title += "\n" + draw_vectors(axes, polygons, frame.slice_velocity, view)
+    if frame.slice_solid is not None and frame.slice_solid.any():
+        title += "; grey: cells at least half solid"
     axes.set_title(title, fontsize="medium")
 
     if field is not None:
@@ -314,6 +321,9 @@ def render_frame(frame: Frame, run: RunOutput, view: View, plane_at: float, poly
         figure.colorbar(slice_collection, ax=axes, shrink=0.8, pad=0.01,
                         extend="both" if field == "pressure" else "neither",
                         label=f"{label} on {view.normal_name} = {plane_at:.4g} m ({unit})")
+    if frame.slice_solid is not None and frame.slice_solid.any():   # what the flow cannot pass: a body, a particle
+        axes.add_collection(PolyCollection(polygons[frame.slice_solid], facecolors="0.6", edgecolors="face",
+                                           linewidths=0.3, zorder=1.5))
     axes.add_collection(LineCollection(outline, colors="0.25", linewidths=1.0, zorder=2))
 
     particle_label, particle_unit = PARTICLE_COLOURS[options.particle_colour]

@@ -19,9 +19,10 @@ from pmpm.render import parse_render_arguments, render
 BOX = ((0.0, 0.0, 0.0), (0.1, 0.1, 0.1))
 
 
-def write_output(folder, particles, cell_type="hex", cells=(4, 4, 4), velocity=None, times=(0.0,)):
+def write_output(folder, particles, cell_type="hex", cells=(4, 4, 4), velocity=None, times=(0.0,), solid=None):
     """A run's fields.h5, written in-process by pmpm's own writer: the same particles at each time;
-    ``velocity(cell_centres)`` gives the fluid's, or None for a run without a fluid."""
+    ``velocity(cell_centres)`` gives the fluid's, or None for a run without a fluid; ``solid(cell
+    centres)`` the volume fraction (default 0)."""
     folder.mkdir(exist_ok=True)
     mesh = Mesh.from_box(MPI.COMM_SELF, *BOX, cells, cell_type)
     writer = FieldWriter(MPI.COMM_SELF, folder, mesh, with_fluid=velocity is not None)
@@ -33,7 +34,8 @@ def write_output(folder, particles, cell_type="hex", cells=(4, 4, 4), velocity=N
     fields = {}
     if velocity is not None:
         u = velocity(mesh.cell_center)
-        fields = {"velocity": u, "pressure": u[:, 0].copy(), "volume_fraction": np.zeros(len(u))}
+        fraction = np.zeros(len(u)) if solid is None else solid(mesh.cell_center)
+        fields = {"velocity": u, "pressure": u[:, 0].copy(), "volume_fraction": fraction}
     for time in times:
         writer.write(time, fields, arrays)
     return folder
@@ -109,6 +111,21 @@ def test_the_slice_shows_the_cell_values(tmp_path, cell_type):
         np.testing.assert_allclose(image[int(row), int(column)], blues(speed)[:3], atol=0.02)
     column, row = picture.pixel_of(0.05, 0.08)
     assert np.abs(image[int(row), int(column)] - blues(1.0)[:3]).max() > 0.2
+
+
+def test_solid_cells_on_the_slice_are_grey(tmp_path):
+    """Cells at least half filled (an immersed body in z < 2.5 cm, volume fraction 1; 0.4 above it)
+    are drawn grey over the slice's colours: the flow cannot pass there."""
+    def solid(centre):
+        return np.where(centre[:, 2] < 0.025, 1.0, np.where(centre[:, 2] < 0.05, 0.4, 0.0))
+    output = write_output(tmp_path / "run", {"position": [[0.05, 0.05, 0.09]], "radius": [0.005]},
+                          velocity=lambda centre: np.ones_like(centre), solid=solid)
+    [picture] = pmpm_render(output, "--size", 600, 400)
+    image = imread(picture.path)[..., :3]
+    column, row = picture.pixel_of(0.05, 0.0125)
+    np.testing.assert_allclose(image[int(row), int(column)], 0.6, atol=0.02)
+    column, row = picture.pixel_of(0.05, 0.0375)
+    assert np.abs(image[int(row), int(column)] - 0.6).max() > 0.1
 
 
 def test_pictures_are_never_replaced(tmp_path, capsys):
