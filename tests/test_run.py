@@ -162,11 +162,11 @@ def test_adaptive_time_step_keeps_the_flow_stable_and_outputs_on_time(tmp_path):
 
 
 def test_the_first_adaptive_step_of_a_flow_from_rest_stays_below_max_cfl(tmp_path):
-    """The ventilated box (coarse): its first projection's flow meets 2.7 × the inlet speed at the
-    outlet's edge, so a first step sized by the boundary speeds gave CFL 1.35 and a warning; the
-    first step takes a quarter of that limit, and no step warns."""
+    """The ventilated box: its first projection's flow meets 2.7 × the inlet speed at the outlet's
+    edge, so a first step sized by the boundary speeds gave CFL 1.35 and a warning; the first step
+    takes a quarter of that limit, and no step warns."""
     command = pmpm_command(ROOT / "cases" / "ventilated_box", "--output", str(tmp_path / "out"), "--set",
-                           "run.end_time=0.02", "--set", "mesh.box.cells=[30,15,15]", "--set", "run.output_every=0.02")
+                           "run.end_time=0.005", "--set", "run.output_every=0.005")
     result = subprocess.run(command, capture_output=True, text=True, timeout=300, env=subprocess_env())
     assert result.returncode == 0, result.stderr
     assert "CFL" not in result.stderr, result.stderr
