@@ -48,6 +48,10 @@ class Body:
     rolling_friction: float | None = None
 
     # -- motion ---------------------------------------------------------------------------------
+    @property
+    def moves(self) -> bool:
+        return bool(np.any(self.velocity) or np.any(self.angular_velocity))
+
     def to_start(self, points: np.ndarray, time: float) -> np.ndarray:
         """(k, 3) where the body's points that are at ``points`` at ``time`` were at t = 0."""
         turn = rotation_matrix(self.angular_velocity * time)

@@ -32,7 +32,8 @@ class BodyPasses:
 
 
 class BodyForcing:
-    """Forcing of the fluid by the case's bodies on one mesh. Holds settings only.
+    """Forcing of the fluid by the case's bodies on one mesh. Holds settings and the cells the
+    bodies at rest cover.
 
     Parameters
     ----------
@@ -49,6 +50,9 @@ class BodyForcing:
         self.strength = float(section.penalty_strength)
         self.samples = reference_samples(mesh.cell_type, int(section.subcell_points))
         self.h2 = mesh.cell_volume[:mesh.n_owned_cells] ** (2 / 3)
+        # a body at rest covers the same cells all run long: geometry, found once
+        self.resting_cover = {index: body.covered_cells(mesh, 0.0, self.samples)
+                              for index, body in enumerate(bodies) if not body.moves}
 
     def begin(self, time: float, u: np.ndarray) -> BodyPasses:
         """Collective. The cells each body covers at ``time`` (the step's end), their rates and the
@@ -56,7 +60,7 @@ class BodyForcing:
         n_owned = self.mesh.n_owned_cells
         cells, owners, alphas = [], [], []
         for index, body in enumerate(self.bodies):
-            cell, alpha = body.covered_cells(self.mesh, time, self.samples)
+            cell, alpha = self.resting_cover.get(index) or body.covered_cells(self.mesh, time, self.samples)
             cells.append(cell)
             owners.append(np.full(len(cell), index))
             alphas.append(alpha)
