@@ -73,29 +73,54 @@ class Body:
         return self.from_start(middle[None], time)[0], float(np.linalg.norm(corners - middle, axis=1).max())
 
     # -- inside -----------------------------------------------------------------------------------
+    def local(self, points: np.ndarray, time: float) -> np.ndarray:
+        """(k, 3) the points at ``time`` in the frame of the untilted shape at t = 0 (a rigid map)."""
+        return (self.to_start(np.asarray(points, float).reshape(-1, 3), time) - self.center) @ self.tilt
+
     def inside(self, points: np.ndarray, time: float) -> np.ndarray:
         """(k,) bool: the points lie in the body at ``time`` (its surface included)."""
-        start = self.to_start(np.asarray(points, float).reshape(-1, 3), time)
-        local = (start - self.center) @ self.tilt      # in the frame of the untilted shape
+        if self.shape == "surface":
+            return winding_number(self.to_start(np.asarray(points, float).reshape(-1, 3), time), self.triangles) > 0.5
+        local = self.local(points, time)
         if self.shape == "box":
             return np.all(np.abs(local) <= 0.5 * self.size * (1 + 1e-12), axis=1)
-        if self.shape == "cylinder":
+        along = local @ self.axis
+        across = np.linalg.norm(local - along[:, None] * self.axis, axis=1)
+        return (np.abs(along) <= 0.5 * self.length * (1 + 1e-12)) & (across <= self.radius * (1 + 1e-12))
+
+    def signed_distance(self, points: np.ndarray, time: float) -> np.ndarray | None:
+        """(k,) the distance from each point to a box's or cylinder's surface, positive inside (m);
+        None for a surface from a file."""
+        if self.shape == "surface":
+            return None
+        local = self.local(points, time)
+        if self.shape == "box":
+            excess = np.abs(local) - 0.5 * self.size
+        else:
             along = local @ self.axis
             across = np.linalg.norm(local - along[:, None] * self.axis, axis=1)
-            return (np.abs(along) <= 0.5 * self.length * (1 + 1e-12)) & (across <= self.radius * (1 + 1e-12))
-        return winding_number(start, self.triangles) > 0.5
+            excess = np.column_stack([np.abs(along) - 0.5 * self.length, across - self.radius])
+        return -np.linalg.norm(np.maximum(excess, 0.0), axis=1) - np.minimum(excess.max(axis=1), 0.0)
 
     def covered_cells(self, mesh, time: float, samples: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Local. The owned cells the body covers at ``time`` and its volume fraction in each, the
         share of the cells' sample points (``samples``: (s, n_vertices) weights, as
-        ``coupling.locate.reference_samples``) inside it."""
+        ``coupling.locate.reference_samples``) inside it. Only the cells a box's or cylinder's
+        surface may cut are sampled: a cell whose centre lies deeper inside than its farthest
+        corner is covered whole, one farther outside not at all."""
         centre, radius = self.bounding_sphere(time)
         n_owned = mesh.n_owned_cells
         corners = mesh.vertex_xyz[mesh.cell_vertices[:n_owned]]
         reach = np.linalg.norm(corners - mesh.cell_center[:n_owned, None], axis=2).max(axis=1)
         near = np.flatnonzero(np.linalg.norm(mesh.cell_center[:n_owned] - centre, axis=1) <= radius + reach)
-        points = np.einsum("sv,mvd->msd", samples, corners[near])
-        alpha = self.inside(points.reshape(-1, 3), time).reshape(len(near), -1).mean(axis=1)
+        alpha = np.ones(len(near))
+        cut = np.arange(len(near))
+        depth = self.signed_distance(mesh.cell_center[near], time)
+        if depth is not None:
+            alpha[depth < -reach[near]] = 0.0
+            cut = np.flatnonzero(np.abs(depth) <= reach[near])
+        points = np.matmul(samples, corners[near[cut]])          # (cut cells, samples, 3)
+        alpha[cut] = self.inside(points.reshape(-1, 3), time).reshape(len(cut), -1).mean(axis=1)
         keep = alpha > 0
         return near[keep], alpha[keep]
 
