@@ -846,3 +846,24 @@ def test_contact_memory_reads_the_arrays_of_the_engine_before():
     assert memory.normal_impulse.tolist() == [1.0, 2.0]
     assert memory.tangential_impulse.tolist() == [[-1.0, 0, 0], [0, 1.0, 0]]
     assert np.all(np.diff(memory.keys) > 0)
+
+
+def test_the_wall_search_finds_the_triangles_on_its_grids_upper_faces():
+    """The pool table's floor and far cushion in 2 cm squares (the faces of a 127 × 64 × 13-cell
+    box): the search grid is capped at 64 cells along x, so the triangles on x = 2.54 m lie on the
+    grid's upper face, whose index came out one past the last cell. They were in no cell, and a
+    ball rolling at 2 m/s passed through that wall. Now a point 2 cm from it finds them all."""
+    def squares(corner, edge_u, edge_v, nu, nv):
+        i, j = np.meshgrid(np.arange(nu), np.arange(nv), indexing="ij")
+        a = corner + (i.ravel()[:, None] * edge_u + j.ravel()[:, None] * edge_v)
+        b, c, d = a + edge_u, a + edge_u + edge_v, a + edge_v
+        return np.concatenate([np.stack([a, b, c], 1), np.stack([a, c, d], 1)])
+    floor = squares(np.zeros(3), np.array([2.54 / 127, 0, 0]), np.array([0, 1.27 / 64, 0]), 127, 64)
+    cushion = squares(np.array([2.54, 0, 0]), np.array([0, 1.27 / 64, 0]), np.array([0, 0, 0.26 / 13]), 64, 13)
+    walls = Walls.from_triangles(np.concatenate([floor, cushion]), boundary=np.repeat([0, 1], [len(floor), len(cushion)]))
+    assert walls.grid[2][0] == 64
+    point = np.array([[2.52, 0.95, 0.028575]])
+    _, found = walls.near(point, 0.03)
+    closest, _ = closest_points_on_triangles(np.repeat(point, len(walls), axis=0), walls.a, walls.b, walls.c)
+    within = np.flatnonzero(np.linalg.norm(closest - point, axis=1) <= 0.03)
+    assert (walls.boundary[within] == 1).sum() > 4 and set(within) <= set(found)

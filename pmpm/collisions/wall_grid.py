@@ -13,13 +13,14 @@ from numba import njit
 
 @njit(cache=True)
 def cell_range(low, high, lower, cell, dims):
-    """The cell index ranges (inclusive) of the box [low, high] in each axis, clamped; empty
-    (first > last) if the box misses the grid."""
+    """The cell index ranges (inclusive) of the box [low, high] in each axis, clamped to the grid:
+    a box beyond the grid's last cell gets that cell (the triangles on the grid's upper faces,
+    whose index comes out as ``dims``, and points beyond them; the sphere tests sort them out)."""
     first = np.empty(3, np.int64)
     last = np.empty(3, np.int64)
     for d in range(3):
-        first[d] = max(int(np.floor((low[d] - lower[d]) / cell)), 0)
-        last[d] = min(int(np.floor((high[d] - lower[d]) / cell)), dims[d] - 1)
+        first[d] = min(max(int(np.floor((low[d] - lower[d]) / cell)), 0), dims[d] - 1)
+        last[d] = max(min(int(np.floor((high[d] - lower[d]) / cell)), dims[d] - 1), 0)
     return first, last
 
 
