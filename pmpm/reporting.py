@@ -148,6 +148,7 @@ def summary(model, state, status: str, seconds: dict) -> dict:
     return {
         "case": str(model.case.path), "status": status, "ranks": model.comm.size,
         "cells": model.mesh.n_global_cells, "particles": len(state.particles), "particles_removed": state.removed,
+        "particles_removed_through": dict(state.removed_through),
         "steps": state.step, "simulated_time": state.time, "models": model.case.models(),
         "wall_seconds": seconds,
         "diagnostics": diagnostics(model, state),

@@ -23,6 +23,7 @@ from .collisions import (CollisionSettings, advance_with_collisions, build_walls
 from .coupling import CouplingMemory, External, PatchForcing, PenaltyForcing, build_forcing, volume_fraction
 from .coupling.bodies import BodyForcing
 from .errors import CaseError, NumericalError, Stopped
+from .exits import ExitFaces
 from .fluid import FlowSolver
 from .forces import field_forces_of_case, gravity_buoyancy
 from .injection import Injector, NewParticles, build_injectors, initial_particles
@@ -53,6 +54,7 @@ class Model:
     contact_settings: CollisionSettings | None
     bodies: tuple[Body, ...] = ()
     body_forcing: BodyForcing | None = None
+    exits: ExitFaces | None = None
 
     @property
     def fluid_density(self) -> float:
@@ -87,8 +89,10 @@ def build_model(comm, case: Case, mesh: Mesh) -> Model:
         forcing = build_forcing(mesh, case.coupling, case.fluid)
         if bodies:
             body_forcing = BodyForcing(mesh, bodies, case.coupling, case.fluid.density, case.fluid.viscosity)
+    # which boundary each particle that leaves crosses (only where particles can be)
+    exits = ExitFaces.of_mesh(mesh) if (case.particles is not None or case.injections) else None
     return Model(comm, case, mesh, flow, forcing, build_injectors(case),
-                 collision_settings(case) if case.collisions else None, bodies, body_forcing)
+                 collision_settings(case) if case.collisions else None, bodies, body_forcing, exits)
 
 
 def initial_state(model: Model) -> RunState:
@@ -134,11 +138,12 @@ def advance(model: Model, state: RunState, dt: float, times: StageTimes) -> RunS
         state = flow_stage(model, state, external, dt, times, injected=state.particles.id >= state.fresh_from)
         force, torque = force + state.hydro_force, torque + state.hydro_torque
     # 7. update V and ω, then move, with collisions resolved in time order
+    moved_from = state.particles.x
     with times.stage("collisions" if model.contact_settings is not None else "motion"):
         state = move_particles(model, state, force, torque, dt)
     # 8. particles that left the domain are removed
     with times.stage("owners"):
-        state = remove_outside(model, state)
+        state = remove_outside(model, state, moved_from)
     # 1 (of the next step). particles released within this step, where they are at its end
     state = replace(state, fresh_from=state.next_id)
     if model.injectors:
@@ -287,15 +292,20 @@ def move_particles(model: Model, state: RunState, force: np.ndarray, torque: np.
     return replace(state, particles=particles, walls=walls, contacts=contacts, collision_totals=totals)
 
 
-def remove_outside(model: Model, state: RunState) -> RunState:
-    """Collective. Particles whose centre left the domain are removed (counted in ``removed``)."""
+def remove_outside(model: Model, state: RunState, start: np.ndarray) -> RunState:
+    """Collective. Particles whose centre left the domain are removed (counted in ``removed``, and
+    in ``removed_through`` by the boundary each crossed on its way from ``start``, (n, 3) the
+    positions the step started from, rows as the particles'; ``pmpm.exits``)."""
     if len(state.particles) == 0:
         return state
     outside = ~model.mesh.inside_domain(state.particles.x)
     if not outside.any():
         return state
+    removed_through = state.removed_through
+    if model.exits is not None:
+        removed_through = model.exits.count(start[outside], state.particles.x[outside], removed_through)
     return replace(state, particles=state.particles.without(outside), removed=state.removed + int(outside.sum()),
-                   hydro_force=state.hydro_force[~outside], hydro_torque=state.hydro_torque[~outside])
+                   removed_through=removed_through, hydro_force=state.hydro_force[~outside], hydro_torque=state.hydro_torque[~outside])
 
 
 def check_finite(particles: ParticleState, step: int, time: float) -> None:
