@@ -253,6 +253,8 @@ def test_resolution_and_reynolds_number_outside_validation_are_warned_of(tmp_pat
     cases = [  # (case values, what the warning must say or None), h = 5 mm
         (dict(), None),                                                        # at rest, 4 cells/d
         (dict(radius=0.006), "span fewer than 3 cells per diameter"),          # 2.4 cells/d
+        # 3 cells/d: h = ∛V is 5.000000000000006 mm here, and 3 h is still 3 cells
+        (dict(radius=0.0075, L=0.04, H=0.04, n=8, m=8, position="[0.021, 0.022, 0.023]"), None),
         (dict(rho_f=1.2, mu=1.8e-5, motion="fixed", extra=stream.format(3.0)), "validated up to Re 1000"),
         (dict(mu=0.05, motion="fixed", extra=stream.format(0.1)), "thinner than a"),   # Re 40 > 16
         (dict(mu=0.05, rho_p=1100.0, gravity="[0.0, 0.0, -9.81]"), "thinner than a"),  # settles at Re ≈ 50
