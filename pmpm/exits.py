@@ -56,10 +56,10 @@ class ExitFaces:
         """(k,) index into ``names`` of the boundary that each path from ``start`` (k, 3), inside,
         to ``end`` (k, 3), outside, crosses first; the nearest to ``end`` where it crosses none."""
         start, end = np.asarray(start, float).reshape(-1, 3), np.asarray(end, float).reshape(-1, 3)
-        out = self.nearest(end)
+        out = np.full(len(start), -1, np.int64)
         m = len(self.triangles)
         if m == 0:
-            return out
+            return np.zeros(len(start), np.int64)
         a = self.triangles[:, 0]
         e1, e2 = self.triangles[:, 1] - a, self.triangles[:, 2] - a
         per_chunk = max(1, ROWS_PER_CHUNK // m)
@@ -81,6 +81,8 @@ class ExitFaces:
             any_hit = np.isfinite(t[np.arange(len(t)), nearest_hit])
             rows = first + np.flatnonzero(any_hit)
             out[rows] = self.boundary[nearest_hit[any_hit]]
+        missed = out < 0
+        out[missed] = self.nearest(end[missed])
         return out
 
     def count(self, start: np.ndarray, end: np.ndarray, totals: dict) -> dict:
