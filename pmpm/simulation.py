@@ -305,7 +305,8 @@ def remove_outside(model: Model, state: RunState, start: np.ndarray) -> RunState
     if model.exits is not None:
         removed_through = model.exits.count(start[outside], state.particles.x[outside], removed_through)
     return replace(state, particles=state.particles.without(outside), removed=state.removed + int(outside.sum()),
-                   removed_through=removed_through, hydro_force=state.hydro_force[~outside], hydro_torque=state.hydro_torque[~outside])
+                   removed_through=removed_through, hydro_force=state.hydro_force[~outside],
+                   hydro_torque=state.hydro_torque[~outside])
 
 
 def check_finite(particles: ParticleState, step: int, time: float) -> None:
