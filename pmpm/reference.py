@@ -119,8 +119,8 @@ def beverloo_mass_rate(orifice_diameter, particle_diameter, bulk_density, gravit
     """Beverloo's law for the steady discharge of coarse, free-flowing grains from a flat-bottomed
     bin through a circular orifice (kg/s): W = C ρ_b √g (D₀ − k d)^{5/2}, independent of the fill
     height. C = 0.58 and k = 1.5 are Beverloo, Leniger & van de Velde's (1961, Chem. Eng. Sci. 15,
-    260) fit over their materials (C ranged 0.55–0.65); it holds for hoppers whose walls are no
-    steeper than the stagnant zone a flat bottom forms (half-angle ≳ 45° from vertical; Nedderman,
-    Tüzün, Savage & Houlsby 1982, Chem. Eng. Sci. 37, 1597, after Rose & Tanaka), and for
-    D₀ ≳ 6 d."""
+    260) fit over their materials (C ranged 0.55–0.65), for D₀ ≳ 6 d. A conical hopper no steeper
+    than the stagnant zone that forms over a flat bottom discharges as the flat-bottomed bin;
+    a steeper one faster (Rose & Tanaka's factor, reviewed by Nedderman, Tüzün, Savage & Houlsby
+    1982, Chem. Eng. Sci. 37, 1597)."""
     return c * bulk_density * np.sqrt(gravity) * (orifice_diameter - k * particle_diameter) ** 2.5

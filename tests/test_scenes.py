@@ -83,9 +83,8 @@ def test_hopper(tmp_path):
     bed over it, and from 0.3 s on the bed discharges at a steady rate (the two halves of the
     window within 15 % of each other) within 20 % of Beverloo's law (C = 0.58, k = 1.5, bulk
     density 0.6 ρ, d the mean diameter of the balls discharged; pmpm.reference; measured 0.94 of
-    it, 0.248 kg/s); both radii come
-    out (each at least a quarter of the balls); balls leave only through the orifice, and every
-    ball written lies inside the hopper, clear of its walls."""
+    it, 0.248 kg/s); both radii come out (each at least a quarter of the balls); balls leave only
+    through the orifice, and every ball written lies inside the hopper, clear of its walls."""
     from pmpm.reference import beverloo_mass_rate
     table, summary = run_scene(tmp_path, "hopper", "run.end_time=0.6", "run.output_every=0.05")
     window = discharged(table, 0.3, 0.6)
@@ -121,9 +120,8 @@ def test_filter(tmp_path):
     that reached it (came within a radius of its face) have passed it (measured: 11 of 15); those
     that passed settle towards the pipe's floor (at least a third of them resting on it, within
     5 % of a radius; on average below the middle); every bead stays in the pipe, clear of its
-    sides; nothing leaves through a wall or the plate; and
-    the water that comes in leaves through the outlet (outflow = inflow to 1e-6, 1 cm/s over
-    4.5 × 4.5 mm)."""
+    sides; nothing leaves through a wall or the plate; and the water that comes in leaves through
+    the outlet (outflow = inflow to 1e-6, 1 cm/s over 4.5 × 4.5 mm)."""
     table, summary = run_scene(tmp_path, "filter", "run.end_time=0.8")
     plate = (3.0e-3, 3.5e-3)                        # the plate's faces (cases/filter/make_mesh.py)
     big, small = table[table["radius"] > 5e-4], table[table["radius"] < 5e-4]
