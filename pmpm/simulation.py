@@ -369,8 +369,9 @@ class Simulation:
             with StopRequests() as stops:
                 while self.state.time < run.end_time * (1 - 1e-12):
                     dt = next_time_step(model, self.state, min(next_output, next_checkpoint, run.end_time))
+                    displacing = bool((self.state.particles.id >= self.state.fresh_from).any())
                     self.advance(dt)   # on a NumericalError self.state stays the state the step started from
-                    watch = watch_flow(model, self.state, dt, watch)
+                    watch = watch_flow(model, self.state, dt, watch, displacing)
                     time = self.state.time
                     if time >= next_output * (1 - 1e-9) or time >= run.end_time * (1 - 1e-12):
                         with self.times.stage("output"):
@@ -456,21 +457,26 @@ def stop_message(state: RunState, signal_number: int, output: Path) -> str:
 class FlowWatch:
     """What the run keeps to judge the flow: the latest state whose CFL number was within the
     stable range (written if the flow diverges later), the largest CFL number of such states and
-    the boundary velocities', and whether the run has warned of a large one."""
+    the boundary velocities', and whether the run has warned of a large one (and of one in a step
+    where injected particles displaced their volume)."""
 
     good: RunState
     stable_cfl: float = 0.0
     warned: bool = False
+    warned_displacing: bool = False
 
 
 STABLE_CFL = 2.0      # × [run] max_cfl: a state below it is kept as the last good one
 DIVERGED_CFL = 10.0   # × [run] max_cfl: above it the explicit convection is blowing up: stop
 
 
-def watch_flow(model: Model, state: RunState, dt: float, watch: FlowWatch) -> FlowWatch:
+def watch_flow(model: Model, state: RunState, dt: float, watch: FlowWatch,
+               displacing: bool = False) -> FlowWatch:
     """Collective (with a flow). The CFL number after a step: warned of above [run] max_cfl, kept
     as the last good state below STABLE_CFL × max_cfl, and above DIVERGED_CFL × max_cfl (or not
-    finite) the run stops: NumericalError naming the step, time, cell and remedy."""
+    finite) the run stops: NumericalError naming the step, time, cell and remedy. In a step where
+    newly injected particles displaced their volume (``displacing``) the warning says so: that
+    outflow lasts one step and its CFL number, about volume / (area × h), does not fall with dt."""
     if model.flow is None:
         return replace(watch, good=state)
     limit = model.case.run.max_cfl
@@ -483,7 +489,15 @@ def watch_flow(model: Model, state: RunState, dt: float, watch: FlowWatch) -> Fl
             f"at ({where[0]:.4g}, {where[1]:.4g}, {where[2]:.4g}) (stopped above {DIVERGED_CFL * limit:g}); "
             f"reduce [run] dt (to {suggestion:.3g} s or less) or use convection = \"upwind\"; written: the last "
             f"state with CFL ≤ {STABLE_CFL * limit:g}, step {good.step}, t = {good.time:.6g} s")
-    if cfl > limit and not watch.warned:
+    if cfl > limit and displacing:
+        if not watch.warned_displacing:
+            reporting.warn_once(model.comm, f"step {state.step}: CFL number {cfl:.2f} in the cell at ({where[0]:.4g}, "
+                                            f"{where[1]:.4g}, {where[2]:.4g}) exceeds [run] max_cfl = {limit:g} in a "
+                                            "step where injected particles displace their volume of fluid: that "
+                                            "outflow lasts one step, and a smaller dt does not lower its CFL number "
+                                            "(docs/coupling.md)")
+            watch = replace(watch, warned_displacing=True)
+    elif cfl > limit and not watch.warned:
         reporting.warn_once(model.comm, f"step {state.step}: CFL number {cfl:.2f} in the cell at ({where[0]:.4g}, "
                                         f"{where[1]:.4g}, {where[2]:.4g}) exceeds [run] max_cfl = {limit:g}; the "
                                         "explicit convection may go unstable: reduce [run] dt")

@@ -518,6 +518,27 @@ def test_injected_particles_push_their_volume_out_through_the_outlet(comm, share
     assert injected_total >= 6, "releases were placed"
 
 
+def test_a_displacing_step_is_warned_of_as_such(tmp_path, capsys):
+    """The outflow that carries an injected particle's volume away lasts one step, and a smaller
+    dt does not lower its CFL number (volume / (area × h)): a CFL number above max_cfl in such a
+    step is warned of as that, not with "reduce [run] dt"."""
+    from pmpm.simulation import FlowWatch, watch_flow
+    path = tmp_path / "case.toml"
+    path.write_text(INJECTING.replace("[run]\n", "[run]\nmax_cfl = 0.05\n"))   # the step makes ≈ 0.2
+    case = load_case(path, [])
+    sim = Simulation(MPI.COMM_SELF, case, Mesh.from_box(MPI.COMM_SELF, case.box.lower, case.box.upper,
+                                                        case.box.cells), quiet=True)
+    watch, displaced_at = FlowWatch(sim.state), []
+    for _ in range(3):
+        displacing = bool((sim.state.particles.id >= sim.state.fresh_from).any())
+        sim.advance(0.01)
+        watch = watch_flow(sim.model, sim.state, 0.01, watch, displacing)
+        displaced_at += [sim.state.step] if displacing else []
+    first = capsys.readouterr().err.splitlines()[0]
+    assert displaced_at[0] == 2 and first.startswith(f"pmpm: warning: step {displaced_at[0]}: CFL number")
+    assert "injected particles displace their volume" in first and "reduce [run] dt" not in first
+
+
 @pytest.mark.parametrize("cfl", [0.5, 0.1])
 def test_fluid_inside_moves_with_the_particle_at_high_cell_reynolds_number(tmp_path, cfl):
     """A fixed sphere (d = 20 mm, 4 cells per diameter) in a 3 m/s air stream: Re = 4000, cell
