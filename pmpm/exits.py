@@ -1,9 +1,8 @@
 """Which boundary a particle left the domain through: the first boundary face its centre's path
 over the step (a straight line from where it started the step to where it ended) crosses, or,
 where the path crosses none to round-off, the face nearest to where it ended. Counted per
-boundary in summary.json
-(``particles_removed_through``), so a run shows that particles leave only where they may (a
-hopper's orifice, a pipe's outlet) and never through a wall.
+boundary in summary.json (``particles_removed_through``), so a run shows that particles leave
+only where they may (a hopper's orifice, a pipe's outlet) and never through a wall.
 """
 from __future__ import annotations
 
@@ -13,7 +12,7 @@ import numpy as np
 
 from .collisions.walls import closest_points_on_triangles
 
-ROWS_PER_CHUNK = 1_000_000   # point–triangle pairs measured at once (bounds the memory, ≈ 0.3 GB)
+ROWS_PER_CHUNK = 250_000   # point–triangle pairs measured at once (bounds the memory, ≈ 0.1 GB)
 
 
 @dataclass(frozen=True)
