@@ -33,6 +33,7 @@ FILL_TIME = 0.6
 PEER = ROOT.parent / "shared" / "peers" / "liggghts_hopper.sh"
 sys.path.insert(0, str(ROOT / "tools"))
 from hopper_mesh import DENSITY, DIAMETER, ORIFICE, hopper_mesh, particles  # noqa: E402
+from pmpm.reference import beverloo_mass_rate  # noqa: E402
 
 CASE = """
 [run]
@@ -109,7 +110,7 @@ def main():
     checkpoint = out / "checkpoint.h5"
 
     bulk = 0.6 * DENSITY
-    beverloo = 0.58 * bulk * np.sqrt(9.81) * (2 * ORIFICE - 1.5 * DIAMETER) ** 2.5   # kg/s
+    beverloo = beverloo_mass_rate(2 * ORIFICE, DIAMETER, bulk)   # kg/s, C = 0.58, k = 1.5
     beverloo_rate = beverloo / (DENSITY * np.pi * DIAMETER ** 3 / 6)
     results = {}
     for ranks in rank_counts:

@@ -4,7 +4,8 @@ Written to ``checkpoint.h5.tmp`` and renamed over ``checkpoint.h5`` only when co
 killed at any moment leaves the previous checkpoint whole. Everything is stored in an order
 independent of the rank count, so a run may restart on another number of ranks:
 
-- attributes: time, step, next particle id, particles removed, pressure iterations, n_global_cells,
+- attributes: time, step, next particle id, particles removed (and through which boundary), pressure
+  iterations, n_global_cells,
   each injection's next release;
 - ``particles/*``: the (replicated) particle arrays and their last hydrodynamic force and torque;
 - ``coupling/*``, ``contacts/*``: the coupling's and the contact solver's memory, where the run has one;
@@ -56,7 +57,8 @@ def write(comm, folder: Path, mesh, state) -> None:
                        pressure_iterations=state.pressure_iterations, n_global_cells=mesh.n_global_cells,
                        injector_releases=np.array(state.releases, np.int64),
                        collisions=json.dumps(state.collision_totals), fresh_from=state.fresh_from,
-                       injection_counts=json.dumps(state.injection_counts))
+                       injection_counts=json.dumps(state.injection_counts),
+                       removed_through=json.dumps(state.removed_through))
         groups = {"particles": {**{name: getattr(state.particles, name) for name in PARTICLE_FIELDS},
                                 "hydro_force": state.hydro_force, "hydro_torque": state.hydro_torque}}
         if state.coupling is not None:
@@ -148,6 +150,7 @@ def restore(comm, data: dict, model, initial, path: Path):
                     collision_totals=json.loads(attrs.get("collisions", "{}")), particles=particles,
                     fresh_from=int(attrs.get("fresh_from", attrs["next_id"])),
                     injection_counts=json.loads(attrs.get("injection_counts", "{}")),
+                    removed_through=json.loads(attrs.get("removed_through", "{}")),
                     hydro_force=stored["hydro_force"].reshape(-1, 3), hydro_torque=stored["hydro_torque"].reshape(-1, 3),
                     contacts=ContactMemory.from_arrays(data["contacts"]) if "contacts" in data else None,
                     body_forces=data["bodies"]["forces"].reshape(-1, 6) if "bodies" in data else None)

@@ -113,3 +113,14 @@ TEN_CATE_SPHERE = (0.015, 1120.0, 0.1275)  # diameter (m), density (kg/m³), rel
 # so these are the terminal speeds of the Navier–Stokes equations in their box, to about 1 %. The
 # measured speeds (TEN_CATE_2002) are 4–9 % above them.
 TEN_CATE_BODY_FITTED = {"E1": 0.0351, "E2": 0.0581, "E3": 0.0881, "E4": 0.1234}   # m/s
+
+
+def beverloo_mass_rate(orifice_diameter, particle_diameter, bulk_density, gravity=9.81, c=0.58, k=1.5):
+    """Beverloo's law for the steady discharge of coarse, free-flowing grains from a flat-bottomed
+    bin through a circular orifice (kg/s): W = C ρ_b √g (D₀ − k d)^{5/2}, independent of the fill
+    height. C = 0.58 and k = 1.5 are Beverloo, Leniger & van de Velde's (1961, Chem. Eng. Sci. 15,
+    260) fit over their materials (C ranged 0.55–0.65), for D₀ ≳ 6 d. A conical hopper no steeper
+    than the stagnant zone that forms over a flat bottom discharges as the flat-bottomed bin;
+    a steeper one faster (Rose & Tanaka's factor, reviewed by Nedderman, Tüzün, Savage & Houlsby
+    1982, Chem. Eng. Sci. 37, 1597)."""
+    return c * bulk_density * np.sqrt(gravity) * (orifice_diameter - k * particle_diameter) ** 2.5

@@ -123,7 +123,7 @@ def warn_outside_validation(model, state, boundary_speed: float) -> None:
     settling[sinking] = terminal_velocity(density[sinking], fluid.density, fluid.viscosity, diameter[sinking], gravity)
     reynolds = fluid.density * np.maximum.reduce([np.full(len(diameter), boundary_speed), own_speed, settling]) \
         * diameter / fluid.viscosity
-    resolution = diameter / h
+    resolution = diameter / h * (1 + 1e-12)   # a diameter of 3 h is 3 cells, whatever its round-off
     if resolution.min() < 3:
         warn(comm, f"{int((resolution < 3).sum())} particle(s) span fewer than 3 cells per diameter (down to "
                    f"{resolution.min():.2g}): the coupling's drag and blockage are validated from 3 on (docs/coupling.md)")
@@ -148,6 +148,7 @@ def summary(model, state, status: str, seconds: dict) -> dict:
     return {
         "case": str(model.case.path), "status": status, "ranks": model.comm.size,
         "cells": model.mesh.n_global_cells, "particles": len(state.particles), "particles_removed": state.removed,
+        "particles_removed_through": dict(state.removed_through),
         "steps": state.step, "simulated_time": state.time, "models": model.case.models(),
         "wall_seconds": seconds,
         "diagnostics": diagnostics(model, state),

@@ -23,6 +23,7 @@ from .collisions import (CollisionSettings, advance_with_collisions, build_walls
 from .coupling import CouplingMemory, External, PatchForcing, PenaltyForcing, build_forcing, volume_fraction
 from .coupling.bodies import BodyForcing
 from .errors import CaseError, NumericalError, Stopped
+from .exits import ExitFaces
 from .fluid import FlowSolver
 from .forces import field_forces_of_case, gravity_buoyancy
 from .injection import Injector, NewParticles, build_injectors, initial_particles
@@ -53,6 +54,7 @@ class Model:
     contact_settings: CollisionSettings | None
     bodies: tuple[Body, ...] = ()
     body_forcing: BodyForcing | None = None
+    exits: ExitFaces | None = None
 
     @property
     def fluid_density(self) -> float:
@@ -88,8 +90,10 @@ def build_model(comm, case: Case, mesh: Mesh) -> Model:
         forcing = build_forcing(mesh, case.coupling, case.fluid)
         if bodies:
             body_forcing = BodyForcing(mesh, bodies, case.coupling, case.fluid.density, case.fluid.viscosity)
+    # which boundary each particle that leaves crosses (only where particles can be)
+    exits = ExitFaces.of_mesh(mesh) if (case.particles is not None or case.injections) else None
     return Model(comm, case, mesh, flow, forcing, build_injectors(case),
-                 collision_settings(case) if case.collisions else None, bodies, body_forcing)
+                 collision_settings(case) if case.collisions else None, bodies, body_forcing, exits)
 
 
 def initial_state(model: Model) -> RunState:
@@ -136,11 +140,12 @@ def advance(model: Model, state: RunState, dt: float, times: StageTimes) -> RunS
         state = flow_stage(model, state, external, dt, times, injected=state.particles.id >= state.fresh_from)
         force, torque = force + state.hydro_force, torque + state.hydro_torque
     # 7. update V and ω, then move, with collisions resolved in time order
+    moved_from = state.particles.x
     with times.stage("collisions" if model.contact_settings is not None else "motion"):
         state = move_particles(model, state, force, torque, dt)
     # 8. particles that left the domain are removed
     with times.stage("owners"):
-        state = remove_outside(model, state)
+        state = remove_outside(model, state, moved_from)
     # 1 (of the next step). particles released within this step, where they are at its end
     state = replace(state, fresh_from=state.next_id)
     if model.injectors:
@@ -289,15 +294,21 @@ def move_particles(model: Model, state: RunState, force: np.ndarray, torque: np.
     return replace(state, particles=particles, walls=walls, contacts=contacts, collision_totals=totals)
 
 
-def remove_outside(model: Model, state: RunState) -> RunState:
-    """Collective. Particles whose centre left the domain are removed (counted in ``removed``)."""
+def remove_outside(model: Model, state: RunState, start: np.ndarray) -> RunState:
+    """Collective. Particles whose centre left the domain are removed (counted in ``removed``, and
+    in ``removed_through`` by the boundary each crossed on its way from ``start``, (n, 3) the
+    positions the step started from, rows as the particles'; ``pmpm.exits``)."""
     if len(state.particles) == 0:
         return state
     outside = ~model.mesh.inside_domain(state.particles.x)
     if not outside.any():
         return state
+    removed_through = state.removed_through
+    if model.exits is not None:
+        removed_through = model.exits.count(start[outside], state.particles.x[outside], removed_through)
     return replace(state, particles=state.particles.without(outside), removed=state.removed + int(outside.sum()),
-                   hydro_force=state.hydro_force[~outside], hydro_torque=state.hydro_torque[~outside])
+                   removed_through=removed_through, hydro_force=state.hydro_force[~outside],
+                   hydro_torque=state.hydro_torque[~outside])
 
 
 def check_finite(particles: ParticleState, step: int, time: float) -> None:
@@ -360,8 +371,9 @@ class Simulation:
             with StopRequests() as stops:
                 while self.state.time < run.end_time * (1 - 1e-12):
                     dt = next_time_step(model, self.state, min(next_output, next_checkpoint, run.end_time))
+                    displacing = bool((self.state.particles.id >= self.state.fresh_from).any())
                     self.advance(dt)   # on a NumericalError self.state stays the state the step started from
-                    watch = watch_flow(model, self.state, dt, watch)
+                    watch = watch_flow(model, self.state, dt, watch, displacing)
                     time = self.state.time
                     if time >= next_output * (1 - 1e-9) or time >= run.end_time * (1 - 1e-12):
                         with self.times.stage("output"):
@@ -451,21 +463,26 @@ def stop_message(state: RunState, signal_number: int, output: Path) -> str:
 class FlowWatch:
     """What the run keeps to judge the flow: the latest state whose CFL number was within the
     stable range (written if the flow diverges later), the largest CFL number of such states and
-    the boundary velocities', and whether the run has warned of a large one."""
+    the boundary velocities', and whether the run has warned of a large one (and of one in a step
+    where injected particles displaced their volume)."""
 
     good: RunState
     stable_cfl: float = 0.0
     warned: bool = False
+    warned_displacing: bool = False
 
 
 STABLE_CFL = 2.0      # × [run] max_cfl: a state below it is kept as the last good one
 DIVERGED_CFL = 10.0   # × [run] max_cfl: above it the explicit convection is blowing up: stop
 
 
-def watch_flow(model: Model, state: RunState, dt: float, watch: FlowWatch) -> FlowWatch:
+def watch_flow(model: Model, state: RunState, dt: float, watch: FlowWatch,
+               displacing: bool = False) -> FlowWatch:
     """Collective (with a flow). The CFL number after a step: warned of above [run] max_cfl, kept
     as the last good state below STABLE_CFL × max_cfl, and above DIVERGED_CFL × max_cfl (or not
-    finite) the run stops: NumericalError naming the step, time, cell and remedy."""
+    finite) the run stops: NumericalError naming the step, time, cell and remedy. In a step where
+    newly injected particles displaced their volume (``displacing``) the warning says so: that
+    outflow lasts one step and its CFL number, about volume / (area × h), does not fall with dt."""
     if model.flow is None:
         return replace(watch, good=state)
     limit = model.case.run.max_cfl
@@ -478,7 +495,15 @@ def watch_flow(model: Model, state: RunState, dt: float, watch: FlowWatch) -> Fl
             f"at ({where[0]:.4g}, {where[1]:.4g}, {where[2]:.4g}) (stopped above {DIVERGED_CFL * limit:g}); "
             f"reduce [run] dt (to {suggestion:.3g} s or less) or use convection = \"upwind\"; written: the last "
             f"state with CFL ≤ {STABLE_CFL * limit:g}, step {good.step}, t = {good.time:.6g} s")
-    if cfl > limit and not watch.warned:
+    if cfl > limit and displacing:
+        if not watch.warned_displacing:
+            reporting.warn_once(model.comm, f"step {state.step}: CFL number {cfl:.2f} in the cell at ({where[0]:.4g}, "
+                                            f"{where[1]:.4g}, {where[2]:.4g}) exceeds [run] max_cfl = {limit:g} in a "
+                                            "step where injected particles displace their volume of fluid: that "
+                                            "outflow lasts one step, and a smaller dt does not lower its CFL number "
+                                            "(docs/coupling.md)")
+            watch = replace(watch, warned_displacing=True)
+    elif cfl > limit and not watch.warned:
         reporting.warn_once(model.comm, f"step {state.step}: CFL number {cfl:.2f} in the cell at ({where[0]:.4g}, "
                                         f"{where[1]:.4g}, {where[2]:.4g}) exceeds [run] max_cfl = {limit:g}; the "
                                         "explicit convection may go unstable: reduce [run] dt")

@@ -27,7 +27,8 @@ class RunState:
         last step (zero where no flow acted yet)
     volume_fraction : (n_local,) the particles' volume fraction per cell in the last step, or None
     next_id : the id the next new particle gets (ids are never reused)
-    removed : particles that have left the domain
+    removed : particles that have left the domain; removed_through : how many through each boundary
+        (name → count; ``pmpm.exits``)
     releases : per [[injection]], the index of its next release; injection_counts : the releases'
         particles placed at once, placed after retries, and dropped, summed over the run
     fresh_from : particles with this id or larger were released at the end of the last step and
@@ -54,6 +55,7 @@ class RunState:
     dt: float = 0.0
     fresh_from: int = 0
     injection_counts: dict = field(default_factory=dict)
+    removed_through: dict = field(default_factory=dict)
     coupling: CouplingMemory | None = None
     contacts: ContactMemory | None = None
     walls: Walls | None = None

@@ -64,3 +64,52 @@ def test_a_wall_that_lets_particles_pass_is_refused(tmp_path):
     path.write_text(FALLING.format(bottom="wall", extra='particles = "pass"'))
     with pytest.raises(CaseError, match='particles = "pass": particles cannot pass a wall'):
         load_case(path, [])
+
+
+LEAVING = """
+[run]
+end_time = 1.0
+dt = 0.01
+gravity = [0.0, 0.0, 0.0]
+[mesh]
+box = { lower = [0, 0, 0], upper = [0.1, 0.1, 0.1], cells = [4, 4, 4] }
+[boundary.zmin]
+type = "outlet"
+[boundary.xmax]
+type = "outlet"
+[[particles.add]]              # straight down through zmin, close to the xmin wall
+position = [0.01, 0.05, 0.05]
+velocity = [0.0, 0.0, -1.0]
+radius = 0.002
+density = 1000.0
+[[particles.add]]              # out through xmax, close to the zmin outlet's edge
+position = [0.05, 0.05, 0.01]
+velocity = [1.0, 0.0, -0.05]
+radius = 0.002
+density = 1000.0
+[[particles.add]]              # out through the corner region, more along x than down
+position = [0.05, 0.02, 0.03]
+velocity = [1.0, 0.0, -0.5]
+radius = 0.002
+density = 1000.0
+"""
+
+
+def test_removed_particles_are_counted_by_the_boundary_they_cross(tmp_path):
+    """Three spheres leave a box through two outlets: summary.json's count per boundary names the
+    one each crossed (zmin once, xmax twice; nothing through a wall), and a checkpoint keeps it."""
+    from pmpm import checkpoint, reporting
+    path = tmp_path / "case.toml"
+    path.write_text(LEAVING)
+    case = load_case(path, [])
+    sim = Simulation(MPI.COMM_SELF, case, build_mesh(MPI.COMM_SELF, case), quiet=True)
+    for _ in range(12):
+        sim.advance(0.01)
+    assert len(sim.particles) == 0
+    summary = reporting.summary(sim.model, sim.state, "done", {})
+    assert summary["particles_removed"] == 3
+    assert summary["particles_removed_through"] == {"zmin": 1, "xmax": 2}
+    checkpoint.write(MPI.COMM_SELF, tmp_path, sim.mesh, sim.state)
+    path = tmp_path / "checkpoint.h5"
+    restored = checkpoint.restore(MPI.COMM_SELF, checkpoint.read(MPI.COMM_SELF, path), sim.model, sim.state, path)
+    assert restored.removed_through == {"zmin": 1, "xmax": 2}

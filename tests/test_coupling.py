@@ -253,6 +253,8 @@ def test_resolution_and_reynolds_number_outside_validation_are_warned_of(tmp_pat
     cases = [  # (case values, what the warning must say or None), h = 5 mm
         (dict(), None),                                                        # at rest, 4 cells/d
         (dict(radius=0.006), "span fewer than 3 cells per diameter"),          # 2.4 cells/d
+        # 3 cells/d: h = ∛V is 5.000000000000006 mm here, and 3 h is still 3 cells
+        (dict(radius=0.0075, L=0.04, H=0.04, n=8, m=8, position="[0.021, 0.022, 0.023]"), None),
         (dict(rho_f=1.2, mu=1.8e-5, motion="fixed", extra=stream.format(3.0)), "validated up to Re 1000"),
         (dict(mu=0.05, motion="fixed", extra=stream.format(0.1)), "thinner than a"),   # Re 40 > 16
         (dict(mu=0.05, rho_p=1100.0, gravity="[0.0, 0.0, -9.81]"), "thinner than a"),  # settles at Re ≈ 50
@@ -514,6 +516,27 @@ def test_injected_particles_push_their_volume_out_through_the_outlet(comm, share
         outflow = sim.flow.boundary_flux(sim.fluid_state)["zmax"]
         assert outflow == pytest.approx(injected * volume / dt, rel=1e-6, abs=1e-8 * volume / dt)   # pressure rtol
     assert injected_total >= 6, "releases were placed"
+
+
+def test_a_displacing_step_is_warned_of_as_such(tmp_path, capsys):
+    """The outflow that carries an injected particle's volume away lasts one step, and a smaller
+    dt does not lower its CFL number (volume / (area × h)): a CFL number above max_cfl in such a
+    step is warned of as that, not with "reduce [run] dt"."""
+    from pmpm.simulation import FlowWatch, watch_flow
+    path = tmp_path / "case.toml"
+    path.write_text(INJECTING.replace("[run]\n", "[run]\nmax_cfl = 0.05\n"))   # the step makes ≈ 0.2
+    case = load_case(path, [])
+    sim = Simulation(MPI.COMM_SELF, case, Mesh.from_box(MPI.COMM_SELF, case.box.lower, case.box.upper,
+                                                        case.box.cells), quiet=True)
+    watch, displaced_at = FlowWatch(sim.state), []
+    for _ in range(3):
+        displacing = bool((sim.state.particles.id >= sim.state.fresh_from).any())
+        sim.advance(0.01)
+        watch = watch_flow(sim.model, sim.state, 0.01, watch, displacing)
+        displaced_at += [sim.state.step] if displacing else []
+    first = capsys.readouterr().err.splitlines()[0]
+    assert displaced_at[0] == 2 and first.startswith(f"pmpm: warning: step {displaced_at[0]}: CFL number")
+    assert "injected particles displace their volume" in first and "reduce [run] dt" not in first
 
 
 @pytest.mark.parametrize("cfl", [0.5, 0.1])

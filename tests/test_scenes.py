@@ -122,3 +122,79 @@ def test_paddle(tmp_path):
     print(f"paddle: liquid turns at {turning:.2f} Ω r; {len(floor)} beads on the floor at "
           f"{round_axis.mean():.3f} m/s round the axis")
     assert turning > 0.4
+
+
+def discharged(table, start, end):
+    """The particles present at ``start`` and gone by ``end`` (rows of the table at ``start``)."""
+    before, after = rows_at(table, start), rows_at(table, end)
+    return before[~np.isin(before["id"], after["id"])]
+
+
+def mass(rows):
+    """The total mass of these particles (kg)."""
+    return float((rows["density"] * 4 / 3 * np.pi * rows["radius"] ** 3).sum())
+
+
+def test_hopper(tmp_path):
+    """Figure 6, 0.6 s: balls of two radii injected faster than the orifice passes them build a
+    bed over it, and from 0.3 s on the bed discharges at a steady rate (the two halves of the
+    window within 15 % of each other) within 20 % of Beverloo's law (C = 0.58, k = 1.5, bulk
+    density 0.6 ρ, d the mean diameter of the balls discharged; pmpm.reference; measured 0.94 of
+    it, 0.248 kg/s); both radii come out (each at least a quarter of the balls); balls leave only
+    through the orifice, and every ball written lies inside the hopper, clear of its walls."""
+    from pmpm.reference import beverloo_mass_rate
+    table, summary = run_scene(tmp_path, "hopper", "run.end_time=0.6", "run.output_every=0.05")
+    window = discharged(table, 0.3, 0.6)
+    rate = mass(window) / 0.3                                               # kg/s
+    first, second = mass(discharged(table, 0.3, 0.45)), mass(discharged(table, 0.45, 0.6))
+    beverloo = beverloo_mass_rate(0.030, 2 * window["radius"].mean(), 0.6 * 2500.0)
+    assert second == pytest.approx(first, rel=0.15), "steady"
+    assert rate == pytest.approx(beverloo, rel=0.2)
+    small = (window["radius"] < 0.00175).mean()
+    assert 0.25 <= small <= 0.75, "both radii come out"
+    assert summary["particles_removed"] > len(window) > 0
+    assert summary["particles_removed_through"] == {"orifice": summary["particles_removed"]}
+    # inside the hopper and clear of its walls, to 5 % of a radius: the distance from each centre
+    # to the hopper's profile (orifice rim → cone top → lid, in the (radius, height) plane) is at
+    # least its radius; the mesh's faceted walls lie inside that surface of revolution
+    profile = np.array([[0.015, 0.0], [0.05, 0.035], [0.05, 0.2], [0.0, 0.2]])
+    centre = np.column_stack([np.hypot(table["x"], table["y"]), table["z"]])
+    clearance = np.min([distance_to_segment(centre, a, b) for a, b in zip(profile[:-1], profile[1:])], axis=0)
+    assert (clearance >= 0.95 * table["radius"]).all() and (table["z"] > 0).all()
+    assert (centre[:, 0] < np.minimum(0.015 + table["z"], 0.05)).all()
+
+
+def distance_to_segment(points, a, b):
+    """Distance (n,) of 2-D points (n, 2) to the segment from a to b."""
+    along = np.clip((points - a) @ (b - a) / ((b - a) @ (b - a)), 0, 1)
+    return np.linalg.norm(points - (a + along[:, None] * (b - a)), axis=1)
+
+
+def test_filter(tmp_path):
+    """Figure 9, 0.8 s: water at 1 cm/s carries polystyrene beads of 0.75 mm and 1.5 mm through a
+    square pipe towards a plate with 1 mm holes. No big bead ever gets past the plate (its centre
+    stays upstream of the plate's face; it may bulge into a hole); at least 60 % of the small ones
+    that reached it (came within a radius of its face) have passed it (measured: 11 of 15); those
+    that passed settle towards the pipe's floor (at least a third of them resting on it, within
+    5 % of a radius; on average below the middle); every bead stays in the pipe, clear of its
+    sides; nothing leaves through a wall or the plate; and the water that comes in leaves through
+    the outlet (outflow = inflow to 1e-6, 1 cm/s over 4.5 × 4.5 mm)."""
+    table, summary = run_scene(tmp_path, "filter", "run.end_time=0.8")
+    plate = (3.0e-3, 3.5e-3)                        # the plate's faces (cases/filter/make_mesh.py)
+    big, small = table[table["radius"] > 5e-4], table[table["radius"] < 5e-4]
+    assert len(big) and (big["x"] < plate[0]).all(), "the plate holds the big (at most bulging into a hole)"
+    reached = np.unique(small["id"][small["x"] + 2 * small["radius"] >= plate[0]])
+    passed = np.unique(small["id"][small["x"] > plate[1]])
+    print(f"filter: {len(passed)} of the {len(reached)} small beads that reached the plate passed it")
+    assert len(reached) >= 5 and len(passed) >= 0.6 * len(reached)
+    end = rows_at(table, table["time"].max())
+    downstream = end[(end["x"] > plate[1]) & (end["radius"] < 5e-4)]
+    assert (np.abs(downstream["z"] - downstream["radius"]) < 0.05 * downstream["radius"]).mean() >= 1 / 3
+    assert downstream["z"].mean() < 4.5e-3 / 2, "settling: below the middle"
+    assert set(summary["particles_removed_through"]) <= {"outlet"}
+    r = 0.95 * table["radius"]                      # every bead in the pipe, clear of its sides
+    assert ((table["y"] >= r) & (table["y"] <= 4.5e-3 - r) & (table["z"] >= r) & (table["z"] <= 4.5e-3 - r)).all()
+    assert ((table["x"] >= r) & (table["x"] <= 9e-3)).all()
+    flux = summary["diagnostics"]["boundary_volume_flux"]
+    assert flux["inlet"] == pytest.approx(-0.01 * 4.5e-3 ** 2, rel=1e-9)
+    assert flux["outlet"] == pytest.approx(-flux["inlet"], rel=1e-6)

@@ -1,6 +1,7 @@
-"""Write a conical-hopper mesh (gmsh 2.2, hexahedra) like the LIGGGHTS peer's, and a particle file.
+"""Write a conical-hopper mesh (gmsh 2.2, hexahedra) like the LIGGGHTS peer's, and a particle file:
+the geometry and the one-off fill of bench/hopper.py (cases/hopper has its own mesh script).
 
-    .venv/bin/python tools/hopper_mesh.py cases/hopper [N]
+    .venv/bin/python tools/hopper_mesh.py FOLDER [N]
 
 Geometry (SI, the peer's: ../shared/peers/liggghts_hopper.sh): a cone from the orifice, radius
 15 mm at z = 0, to radius 50 mm at half-angle 30° from vertical (z = 60.6 mm), then a cylinder of
