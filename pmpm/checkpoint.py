@@ -6,7 +6,9 @@ independent of the rank count, so a run may restart on another number of ranks:
 
 - attributes: time, step, next particle id, particles removed, pressure iterations, n_global_cells,
   each injection's next release;
-- ``particles/*``: the (replicated) particle arrays and their last hydrodynamic force and torque;
+- ``particles/*``: the particle arrays (gathered where ranks own particles), in id order, and their
+  last hydrodynamic force and torque; ``ownership/partition``: the ranks' boxes, where they own
+  particles (a restart on as many ranks takes them again);
 - ``coupling/*``, ``contacts/*``: the coupling's and the contact solver's memory, where the run has one;
 - ``walls/*``: the wall triangles as they are now (rigid walls move); ``collisions``: the run's counts;
 - ``fluid/velocity``, ``fluid/pressure``, ``fluid/volume_fraction``: cells in the serial order of
@@ -30,6 +32,7 @@ from .errors import CaseError
 from .fluid import FluidState
 from .io import SerialOrder, h5py
 from .mesh import match_rows
+from .ownership import Partition, gather
 from .parallel import agree, exscan_offset
 from .particles import ParticleState
 
@@ -57,12 +60,20 @@ def write(comm, folder: Path, mesh, state) -> None:
                        injector_releases=np.array(state.releases, np.int64),
                        collisions=json.dumps(state.collision_totals), fresh_from=state.fresh_from,
                        injection_counts=json.dumps(state.injection_counts))
-        groups = {"particles": {**{name: getattr(state.particles, name) for name in PARTICLE_FIELDS},
-                                "hydro_force": state.hydro_force, "hydro_torque": state.hydro_torque}}
+        particles, hydro_force, hydro_torque, contacts = state.particles, state.hydro_force, state.hydro_torque, \
+            state.contacts
+        if state.partition is not None:   # owned by ranks: gathered, in id order
+            particles = gather(comm, particles)
+            hydro_force = hydro_torque = np.zeros((len(particles), 3))   # no flow
+            contacts = gathered_memory(comm, contacts) if contacts is not None else None
+        groups = {"particles": {**{name: getattr(particles, name) for name in PARTICLE_FIELDS},
+                                "hydro_force": hydro_force, "hydro_torque": hydro_torque}}
+        if state.partition is not None:
+            groups["ownership"] = {"partition": state.partition.to_array()}
         if state.coupling is not None:
             groups["coupling"] = state.coupling.to_arrays()
-        if state.contacts is not None:
-            groups["contacts"] = state.contacts.to_arrays()
+        if contacts is not None:
+            groups["contacts"] = contacts.to_arrays()
         if state.body_forces is not None:
             groups["bodies"] = {"forces": state.body_forces}
         if state.walls is not None:
@@ -110,7 +121,7 @@ def read(comm, path: Path) -> dict:
     try:
         with h5py.File(path, "r") as f:
             data = {"attrs": dict(f.attrs)}
-            for group in ("particles", "coupling", "contacts", "walls", "bodies", "fluid"):
+            for group in ("particles", "coupling", "contacts", "walls", "bodies", "fluid", "ownership"):
                 if group in f:
                     data[group] = {k: f[f"{group}/{k}"][...] for k in f[group]}
             if "particles" not in data:
@@ -121,6 +132,23 @@ def read(comm, path: Path) -> dict:
         error = CaseError(f"--restart {path}: not a pmpm checkpoint ({exc})")
     agree(comm, error)
     return data
+
+
+def gathered_memory(comm, memory: ContactMemory) -> ContactMemory:
+    """Collective. Every rank's contact memory, in key order."""
+    parts = comm.allgather(memory.to_arrays())
+    joined = ContactMemory.from_arrays({name: np.concatenate([part[name] for part in parts]) for name in parts[0]})
+    order = np.argsort(joined.keys, kind="stable")
+    return ContactMemory.from_arrays({name: values[order] for name, values in joined.to_arrays().items()})
+
+
+def stored_partition(data: dict, ranks: int) -> Partition | None:
+    """The ranks' boxes a checkpoint was written with, if it was written on ``ranks`` ranks owning
+    particles (a restart on as many ranks continues the same trajectory), else None."""
+    if "ownership" not in data:
+        return None
+    boxes = Partition.from_array(data["ownership"]["partition"])
+    return boxes if len(boxes.lower) == ranks else None
 
 
 def restore(comm, data: dict, model, initial, path: Path):

@@ -145,9 +145,13 @@ def warn_once(comm, message: str) -> None:
 
 def summary(model, state, status: str, seconds: dict) -> dict:
     """Collective. The contents of summary.json."""
+    owned = state.partition is not None
+    count = model.comm.allreduce(len(state.particles)) if owned else len(state.particles)
     return {
         "case": str(model.case.path), "status": status, "ranks": model.comm.size,
-        "cells": model.mesh.n_global_cells, "particles": len(state.particles), "particles_removed": state.removed,
+        "cells": model.mesh.n_global_cells, "particles": count, "particles_removed": state.removed,
+        **({"particles_per_rank": {"largest_owned": state.ranks_seen.get("owned", count),
+                                   "largest_ghosts": state.ranks_seen.get("ghosts", 0)}} if owned else {}),
         "steps": state.step, "simulated_time": state.time, "models": model.case.models(),
         "wall_seconds": seconds,
         "diagnostics": diagnostics(model, state),
@@ -157,8 +161,11 @@ def summary(model, state, status: str, seconds: dict) -> dict:
 def diagnostics(model, state) -> dict:
     """Collective. Conservation checks for summary.json."""
     particles = state.particles
-    result = {"particle_kinetic_energy": 0.5 * float(np.sum(particles.mass * np.sum(particles.v ** 2, axis=1))),
-              "particle_momentum": (particles.mass[:, None] * particles.v).sum(axis=0)}
+    sums = np.concatenate([[0.5 * float(np.sum(particles.mass * np.sum(particles.v ** 2, axis=1)))],
+                           (particles.mass[:, None] * particles.v).sum(axis=0)])
+    if state.partition is not None:   # each rank its own particles
+        sums = allreduce_sum(model.comm, sums)
+    result = {"particle_kinetic_energy": float(sums[0]), "particle_momentum": sums[1:]}
     if model.contact_settings is not None:
         result["collisions"] = dict(state.collision_totals)
     if model.injectors:

@@ -18,8 +18,9 @@ from mpi4py import MPI
 from . import checkpoint, checks, io, reporting
 from .bodies import Body, build_bodies
 from .case import Case, case_path, load_case, suggest
-from .collisions import (CollisionSettings, advance_with_collisions, build_walls, check_initial_particles,
-                         collision_settings)
+from .collisions import (CollisionSettings, ContactMemory, advance_with_collisions, build_walls,
+                         check_initial_particles, collision_settings)
+from .collisions.subdomains import advance_owned
 from .coupling import CouplingMemory, External, PatchForcing, PenaltyForcing, build_forcing, volume_fraction
 from .coupling.bodies import BodyForcing
 from .errors import CaseError, NumericalError, Stopped
@@ -28,7 +29,8 @@ from .forces import field_forces_of_case, gravity_buoyancy
 from .injection import Injector, NewParticles, build_injectors, initial_particles
 from .placement import place_releases
 from .mesh import Mesh
-from .parallel import allreduce_sum, print0
+from .ownership import Halo, Partition, balanced, bisect, cell_boxes, exchange_rows, inside_domain, migrate
+from .parallel import agree, allreduce_sum, print0
 from .particles import FIXED, ParticleState, accelerate
 from .reporting import StageTimes
 from .signals import StopRequests
@@ -53,10 +55,17 @@ class Model:
     contact_settings: CollisionSettings | None
     bodies: tuple[Body, ...] = ()
     body_forcing: BodyForcing | None = None
+    cell_boxes: np.ndarray | None = None   # (ranks, 2, 3) each rank's owned cells' box, where ranks own particles
 
     @property
     def fluid_density(self) -> float:
         return self.case.fluid.density if self.case.fluid is not None else 0.0
+
+    @property
+    def owns_particles(self) -> bool:
+        """Whether each rank holds only the particles it owns (``pmpm.ownership``): a run without a
+        flow on several ranks. With a flow every rank holds every particle (ARCHITECTURE.md)."""
+        return self.flow is None and self.comm.size > 1
 
 
 def build_mesh(comm, case: Case) -> Mesh:
@@ -87,8 +96,9 @@ def build_model(comm, case: Case, mesh: Mesh) -> Model:
         forcing = build_forcing(mesh, case.coupling, case.fluid)
         if bodies:
             body_forcing = BodyForcing(mesh, bodies, case.coupling, case.fluid.density, case.fluid.viscosity)
+    boxes = cell_boxes(comm, mesh) if flow is None and comm.size > 1 else None
     return Model(comm, case, mesh, flow, forcing, build_injectors(case),
-                 collision_settings(case) if case.collisions else None, bodies, body_forcing)
+                 collision_settings(case) if case.collisions else None, bodies, body_forcing, boxes)
 
 
 def initial_state(model: Model) -> RunState:
@@ -102,7 +112,27 @@ def initial_state(model: Model) -> RunState:
                      releases=(0,) * len(model.injectors), coupling=CouplingMemory() if fluid is not None else None,
                      walls=walls)
     state = add_particles(model, state, initial_particles(case), validate=True)
-    return replace(state, fresh_from=state.next_id)
+    return distribute(model, replace(state, fresh_from=state.next_id))
+
+
+def distribute(model: Model, state: RunState, partition: Partition | None = None) -> RunState:
+    """Collective. Where ranks own particles (``Model.owns_particles``): a state whose particles every
+    rank holds whole (the case's, a checkpoint's) as each rank's own, in the boxes of ``partition``
+    (by default bisected over the particles) with the contact memory of the contacts whose lower-id
+    particle it owns. Otherwise the state as it is."""
+    if not model.owns_particles:
+        return state
+    comm, particles = model.comm, state.particles
+    if partition is None:
+        partition = bisect(comm, particles.x if comm.rank == 0 else np.zeros((0, 3)))
+    mine = partition.owner_of(particles.x) == comm.rank
+    contacts = state.contacts
+    if contacts is not None:
+        kept = np.isin(contacts.first_id, particles.id[mine])
+        contacts = ContactMemory(contacts.first_id[kept], contacts.second_id[kept], contacts.normal_impulse[kept],
+                                 contacts.tangential_impulse[kept])
+    return replace(state, particles=particles.without(~mine), hydro_force=state.hydro_force[mine],
+                   hydro_torque=state.hydro_torque[mine], contacts=contacts, partition=partition)
 
 
 def add_particles(model: Model, state: RunState, new: NewParticles, validate: bool = False) -> RunState:
@@ -113,11 +143,15 @@ def add_particles(model: Model, state: RunState, new: NewParticles, validate: bo
     if validate:
         check_initial_particles(model.case, new, model.mesh.inside_domain(new.x), state.walls)
     n = len(new)
-    particles = state.particles.appended(state.next_id + np.arange(n), new.x, new.v, new.omega, new.radius,
-                                         new.density, new.motion)
+    mine = np.ones(n, bool)
+    if state.partition is not None:   # every rank took the same decision: each keeps its own
+        mine = state.partition.owner_of(new.x) == model.comm.rank
+    k = int(mine.sum())
+    particles = state.particles.appended(state.next_id + np.flatnonzero(mine), new.x[mine], new.v[mine],
+                                         new.omega[mine], new.radius[mine], new.density[mine], new.motion[mine])
     return replace(state, particles=particles, next_id=state.next_id + n,
-                   hydro_force=np.concatenate([state.hydro_force, np.zeros((n, 3))]),
-                   hydro_torque=np.concatenate([state.hydro_torque, np.zeros((n, 3))]))
+                   hydro_force=np.concatenate([state.hydro_force, np.zeros((k, 3))]),
+                   hydro_torque=np.concatenate([state.hydro_torque, np.zeros((k, 3))]))
 
 
 # ----------------------------------------------------------------------------------------------
@@ -136,16 +170,18 @@ def advance(model: Model, state: RunState, dt: float, times: StageTimes) -> RunS
     # 7. update V and ω, then move, with collisions resolved in time order
     with times.stage("collisions" if model.contact_settings is not None else "motion"):
         state = move_particles(model, state, force, torque, dt)
-    # 8. particles that left the domain are removed
+    # 8. particles that left the domain are removed; particles whose centre changed rank migrate
     with times.stage("owners"):
         state = remove_outside(model, state)
+        if state.partition is not None:
+            state = migrate_particles(model, state)
     # 1 (of the next step). particles released within this step, where they are at its end
     state = replace(state, fresh_from=state.next_id)
     if model.injectors:
         with times.stage("injection"):
             state = inject(model, state, state.time + dt)
     state = replace(state, time=state.time + dt, step=state.step + 1, dt=dt)
-    check_finite(state.particles, state.step, state.time)
+    check_finite(state.particles, state.step, state.time, model.comm if state.partition is not None else None)
     return state
 
 
@@ -174,8 +210,19 @@ def external_forces(model: Model, state: RunState) -> External:
     case, particles = model.case, state.particles
     force = gravity_buoyancy(particles, np.array(case.run.gravity), model.fluid_density)
     if case.field_forces is not None:
-        force += field_forces_of_case(particles, state.walls, case.field_forces)
+        force += owned_field_forces(model, state) if state.partition is not None else \
+            field_forces_of_case(particles, state.walls, case.field_forces)
     return External(force, np.zeros_like(force))
+
+
+def owned_field_forces(model: Model, state: RunState) -> np.ndarray:
+    """Collective. Eq. 9–10 on the particles this rank owns, with ghost copies of the particles of
+    other ranks within the cutoff (the default cutoff from the mean diameter over every rank)."""
+    comm, section, particles = model.comm, model.case.field_forces, state.particles
+    count, total = comm.allreduce(np.array([len(particles), particles.radius.sum()]))
+    cutoff = section.cutoff if section.cutoff is not None else 5.0 * 2.0 * total / max(count, 1.0)
+    halo, local = Halo.build(comm, state.partition, particles, cutoff * (1 + 1e-9))
+    return field_forces_of_case(local, state.walls, replace(section, cutoff=cutoff))[halo.owned]
 
 
 def flow_stage(model: Model, state: RunState, external: External, dt: float, times: StageTimes,
@@ -278,7 +325,14 @@ def move_particles(model: Model, state: RunState, force: np.ndarray, torque: np.
     for _ in range(substeps):
         accelerate(particles, force, torque, dt / substeps)
         if model.contact_settings is not None:
-            result = advance_with_collisions(particles, walls, dt / substeps, model.contact_settings, contacts)
+            if state.partition is not None:
+                result = advance_owned(model.comm, state.partition, particles, walls, dt / substeps,
+                                       model.contact_settings, contacts)
+                seen = {key: max(state.ranks_seen.get(key, 0), model.comm.allreduce(result.stats.pop(key), op=MPI.MAX))
+                        for key in ("owned", "ghosts")}
+                state = replace(state, ranks_seen=seen)
+            else:
+                result = advance_with_collisions(particles, walls, dt / substeps, model.contact_settings, contacts)
             walls, contacts = result.walls, result.memory
             totals = {**totals, **{key: totals.get(key, 0) + int(value) for key, value in result.stats.items()}}
         else:
@@ -289,22 +343,59 @@ def move_particles(model: Model, state: RunState, force: np.ndarray, torque: np.
 
 def remove_outside(model: Model, state: RunState) -> RunState:
     """Collective. Particles whose centre left the domain are removed (counted in ``removed``)."""
-    if len(state.particles) == 0:
+    if state.partition is not None:   # each rank its own particles
+        outside = ~inside_domain(model.comm, model.mesh, model.cell_boxes, state.particles.x)
+        removed = model.comm.allreduce(int(outside.sum()))
+    else:
+        if len(state.particles) == 0:
+            return state
+        outside = ~model.mesh.inside_domain(state.particles.x)
+        removed = int(outside.sum())
+    if removed == 0:
         return state
-    outside = ~model.mesh.inside_domain(state.particles.x)
-    if not outside.any():
-        return state
-    return replace(state, particles=state.particles.without(outside), removed=state.removed + int(outside.sum()),
+    return replace(state, particles=state.particles.without(outside), removed=state.removed + removed,
                    hydro_force=state.hydro_force[~outside], hydro_torque=state.hydro_torque[~outside])
 
 
-def check_finite(particles: ParticleState, step: int, time: float) -> None:
-    """Raise NumericalError naming the first particle whose state is not finite."""
+def migrate_particles(model: Model, state: RunState) -> RunState:
+    """Collective. Particles whose centre entered another rank's box go to it, with their last
+    hydrodynamic force and the contact memory of the contacts whose lower-id particle they are; when
+    a rank owns more than ``ownership.IMBALANCE`` × the mean, the boxes are bisected again first."""
+    comm, particles, partition = model.comm, state.particles, state.partition
+    if not balanced(comm, len(particles)):
+        partition = bisect(comm, particles.x)
+    contacts = state.contacts
+    if contacts is not None:   # the memory goes where the contact's lower-id particle goes
+        at = np.minimum(np.searchsorted(particles.id, contacts.first_id), max(len(particles) - 1, 0))
+        held = (at < len(particles)) & (particles.id[at] == contacts.first_id) if len(particles) else \
+            np.zeros(len(contacts), bool)
+        owner = np.where(held, partition.owner_of(particles.x[at]) if len(particles) else -1, -1)
+        rows = contacts.to_arrays()
+        stay = owner == comm.rank
+        arrived = exchange_rows(comm, np.where(stay, -1, owner), rows)
+        joined = {name: np.concatenate([values[stay], arrived[name]]) for name, values in rows.items()}
+        contacts = ContactMemory.from_arrays(joined)
+        order = np.argsort(contacts.keys, kind="stable")
+        contacts = ContactMemory.from_arrays({name: values[order] for name, values in contacts.to_arrays().items()})
+    particles, extra = migrate(comm, partition, particles, {"hydro_force": state.hydro_force,
+                                                            "hydro_torque": state.hydro_torque})
+    return replace(state, particles=particles, hydro_force=extra["hydro_force"], hydro_torque=extra["hydro_torque"],
+                   contacts=contacts, partition=partition)
+
+
+def check_finite(particles: ParticleState, step: int, time: float, comm=None) -> None:
+    """Raise NumericalError naming the first particle whose state is not finite (collective with
+    ``comm``: where each rank holds its own particles, every rank raises)."""
     bad = ~np.isfinite(particles.x).all(axis=1) | ~np.isfinite(particles.v).all(axis=1)
+    error = None
     if bad.any():
         pid = int(particles.id[np.argmax(bad)])
-        raise NumericalError(f"step {step}, t = {time:.6g} s: particle {pid} has a non-finite position or "
-                             "velocity; reduce [run] dt")
+        error = NumericalError(f"step {step}, t = {time:.6g} s: particle {pid} has a non-finite position or "
+                               "velocity; reduce [run] dt")
+    if comm is not None:
+        agree(comm, error)
+    elif error is not None:
+        raise error
 
 
 # ----------------------------------------------------------------------------------------------
@@ -372,7 +463,9 @@ class Simulation:
                         checkpoint_time = time
                         while next_checkpoint <= time * (1 + 1e-9):
                             next_checkpoint += every
-                    progress.update(self.state.step, time, f"  particles {len(self.state.particles)}")
+                    count = self.state.next_id - self.state.removed if self.state.partition is not None else \
+                        len(self.state.particles)   # (ranks own particles: every rank knows the total so)
+                    progress.update(self.state.step, time, f"  particles {count}")
                     signal_number = stops.agreed(self.comm)
                     if signal_number:
                         stop = Stopped(stop_message(self.state, signal_number, output), signal_number)
@@ -424,6 +517,10 @@ def next_time_step(model: Model, state: RunState, until: float) -> float:
         rate, length = model.comm.allreduce(rate, op=MPI.MAX), model.comm.allreduce(h, op=MPI.MIN)
         limit = min(limit, target / rate) if rate > 0 else limit
     speed = float(np.linalg.norm(state.particles.v, axis=1).max(initial=0.0))
+    if state.partition is not None:
+        speed = model.comm.allreduce(speed, op=MPI.MAX)
+        if model.flow is None:
+            length = model.comm.allreduce(length, op=MPI.MIN)
     if speed > 0:
         limit = min(limit, target * length / speed)
     last = state.dt
@@ -493,8 +590,8 @@ def run_from_arguments(comm, arguments) -> None:
     check_boundaries(case, mesh)
     simulation = Simulation(comm, case, mesh, quiet=arguments.quiet)
     if restart is not None:
-        simulation.state = checkpoint.restore(comm, restart, simulation.model, simulation.state,
-                                              Path(arguments.restart))
+        state = checkpoint.restore(comm, restart, simulation.model, simulation.state, Path(arguments.restart))
+        simulation.state = distribute(simulation.model, state, checkpoint.stored_partition(restart, comm.size))
         print0(comm, f"pmpm: restarting from {arguments.restart} at t = {simulation.state.time:g} s, "
                      f"step {simulation.state.step}")
     writes = checks.before_running(comm, simulation.model, simulation.state, output, arguments.restart)

@@ -13,6 +13,7 @@ import numpy as np
 from .collisions import ContactMemory, Walls
 from .coupling import CouplingMemory
 from .fluid import FluidState
+from .ownership import Partition
 from .particles import ParticleState
 
 
@@ -21,7 +22,9 @@ class RunState:
     """One moment of a run (SI).
 
     time, step : simulated time (s) and steps taken; dt : the last step's size (s)
-    particles : every particle (``pmpm.particles``)
+    particles : every particle (``pmpm.particles``); with ``partition``, the particles this rank owns
+    partition : the ranks' boxes (``pmpm.ownership``) where particles are owned by ranks (runs without
+        a flow, on several ranks), else None (every rank holds every particle)
     fluid : the flow, or None without [fluid]
     hydro_force, hydro_torque : (n, 3) the fluid's force (N) and torque (N m) on each particle over the
         last step (zero where no flow acted yet)
@@ -39,6 +42,8 @@ class RunState:
     pressure_iterations : pressure KSP iterations summed over the run
     body_forces : (n_bodies, 6) the fluid's force (N) and torque (N m) on each [[body]] over the last
         step, or None
+    ranks_seen : the largest number of owned and of ghost particles a rank held in a step
+        (``owned``, ``ghosts``), where particles are owned by ranks
     """
 
     time: float
@@ -60,3 +65,5 @@ class RunState:
     collision_totals: dict = field(default_factory=dict)
     pressure_iterations: int = 0
     body_forces: np.ndarray | None = None
+    partition: Partition | None = None
+    ranks_seen: dict = field(default_factory=dict)

@@ -1,0 +1,315 @@
+"""Particles owned by ranks: the spatial partition, migration, ghost copies, gathering for output.
+
+Without a flow (DEM-only runs) a particle belongs to the rank whose box holds its centre. The boxes
+are a recursive coordinate bisection of the *particles* (the mesh's own partition balances cells:
+in the hopper its cut lies above nearly every particle), planes cutting the longest extent of the
+particles in proportion to the ranks on each side, computed from histograms summed over ranks
+(no rank ever holds every particle), and computed again when the particle counts drift apart
+(``IMBALANCE``). The outer boxes reach to infinity, so every point has exactly one owner.
+
+Each rank holds its owned particles (sorted by id) and, during a contact step, ghost copies of the
+particles of other ranks within a given distance of its box (``Halo``): read-only copies whose
+velocity changes go back to their owners (``Halo.merge``). With a flow, every rank still holds every
+particle (ARCHITECTURE.md): the partition is not used.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, fields
+
+import numpy as np
+from mpi4py import MPI
+
+from .particles import ParticleState
+
+IMBALANCE = 1.15        # the boxes are bisected again when a rank owns this × the mean number of particles
+BINS, ROUNDS = 64, 3    # a cut is placed by ROUNDS histograms of BINS bins (to 1/64³ of the particles' extent)
+PARTICLE_FIELDS = tuple(f.name for f in fields(ParticleState))
+
+
+@dataclass(frozen=True)
+class Partition:
+    """Each rank's box, [lower, upper) per axis (m); the outer sides at ±inf. (ranks, 3) each."""
+
+    lower: np.ndarray
+    upper: np.ndarray
+
+    @classmethod
+    def whole(cls, ranks: int = 1) -> "Partition":
+        """Every point on rank 0 (the boxes of the other ranks empty)."""
+        lower, upper = np.full((ranks, 3), np.inf), np.full((ranks, 3), np.inf)
+        lower[0], upper[0] = -np.inf, np.inf
+        return cls(lower, upper)
+
+    def owner_of(self, x: np.ndarray) -> np.ndarray:
+        """(n,) int64, the rank whose box holds each point (n, 3); 0 for a point that is not finite."""
+        inside = ((x[:, None, :] >= self.lower[None]) & (x[:, None, :] < self.upper[None])).all(axis=2)
+        return np.argmax(inside, axis=1).astype(np.int64)
+
+    def distance(self, x: np.ndarray) -> np.ndarray:
+        """(n, ranks) distance (m) from each point to each rank's box (0 inside)."""
+        below = np.maximum(self.lower[None] - x[:, None, :], 0.0)
+        above = np.maximum(x[:, None, :] - self.upper[None], 0.0)
+        return np.sqrt(((np.nan_to_num(below) + np.nan_to_num(above)) ** 2).sum(axis=2))
+
+    def to_array(self) -> np.ndarray:
+        return np.stack([self.lower, self.upper])
+
+    @classmethod
+    def from_array(cls, array: np.ndarray) -> "Partition":
+        return cls(np.array(array[0], float), np.array(array[1], float))
+
+
+def bisect(comm, x: np.ndarray) -> Partition:
+    """Collective. Boxes that share the particles (centres ``x``, this rank's, (n, 3)) evenly among
+    the ranks: each box with several ranks is cut across the longest extent of its particles, at
+    the share of its ranks on the lower side, level by level (one set of reductions per level)."""
+    ranks = comm.size
+    nodes = [(np.full(3, -np.inf), np.full(3, np.inf), 0, ranks)]   # (lower, upper, first rank, ranks)
+    while any(count > 1 for *_, count in nodes):
+        split = [k for k, node in enumerate(nodes) if node[3] > 1]
+        lower = np.array([nodes[k][0] for k in split])
+        upper = np.array([nodes[k][1] for k in split])
+        inside = ((x[:, None, :] >= lower[None]) & (x[:, None, :] < upper[None])).all(axis=2)
+        node = np.where(inside.any(axis=1), np.argmax(inside, axis=1), -1)
+        held = node >= 0
+        low = np.full((len(split), 3), np.inf)
+        high = np.full((len(split), 3), -np.inf)
+        np.minimum.at(low, node[held], x[held])
+        np.maximum.at(high, node[held], x[held])
+        bounds = np.concatenate([low, -high], axis=1)
+        comm.Allreduce(MPI.IN_PLACE, bounds, op=MPI.MIN)
+        low, high = bounds[:, :3], -bounds[:, 3:]
+        empty = ~np.isfinite(low).all(axis=1)
+        low[empty], high[empty] = 0.0, 0.0
+        axis = np.argmax(high - low, axis=1)
+        share = np.array([(nodes[k][3] // 2) / nodes[k][3] for k in split])
+        coordinate = np.where(held, x[np.arange(len(x)), axis[np.maximum(node, 0)]] if len(x) else 0.0, 0.0)
+        cut = quantile_cut(comm, coordinate, node, low[np.arange(len(split)), axis],
+                           high[np.arange(len(split)), axis], share)
+        children = []
+        for k, (lo, hi, first, count) in enumerate(nodes):
+            if count == 1:
+                children.append(nodes[k])
+                continue
+            s = split.index(k)
+            left = count // 2
+            upper_left, lower_right = hi.copy(), lo.copy()
+            upper_left[axis[s]] = lower_right[axis[s]] = cut[s]
+            children += [(lo, upper_left, first, left), (lower_right, hi, first + left, count - left)]
+        nodes = children
+    nodes.sort(key=lambda node: node[2])
+    return Partition(np.array([node[0] for node in nodes]), np.array([node[1] for node in nodes]))
+
+
+def quantile_cut(comm, coordinate: np.ndarray, node: np.ndarray, low: np.ndarray, high: np.ndarray,
+                 share: np.ndarray) -> np.ndarray:
+    """Collective. Per node, a coordinate below which ``share`` of its particles lie (``coordinate``
+    and ``node`` per particle, node −1: in none), narrowed by ROUNDS histograms summed over ranks;
+    the midpoint of [low, high] for a node without particles."""
+    nodes = len(low)
+    held = node >= 0
+    lo, hi = low.astype(float).copy(), high.astype(float).copy()
+    below = np.zeros(nodes)                       # particles below lo, per node
+    total = np.bincount(node[held], minlength=nodes).astype(float)
+    comm.Allreduce(MPI.IN_PLACE, total, op=MPI.SUM)
+    target = share * total
+    for _ in range(ROUNDS):
+        width = np.maximum(hi - lo, 1e-300)
+        b = np.floor((coordinate[held] - lo[node[held]]) / width[node[held]] * BINS).astype(np.int64)
+        inside = (b >= 0) & (b < BINS)
+        counts = np.bincount(node[held][inside] * BINS + b[inside], minlength=nodes * BINS).astype(float)
+        comm.Allreduce(MPI.IN_PLACE, counts, op=MPI.SUM)
+        running = below[:, None] + np.cumsum(counts.reshape(nodes, BINS), axis=1)
+        k = np.minimum((running < target[:, None]).sum(axis=1), BINS - 1)   # the bin where the share is reached
+        below = np.where(k > 0, running[np.arange(nodes), np.maximum(k - 1, 0)], below)
+        lo, hi = lo + width * k / BINS, lo + width * (k + 1) / BINS
+    return np.where(total > 0, hi, 0.5 * (low + high))
+
+
+def balanced(comm, n_owned: int) -> bool:
+    """Collective. Whether no rank owns more than IMBALANCE × the mean number of particles."""
+    counts = comm.allgather(int(n_owned))
+    return max(counts) <= IMBALANCE * max(np.mean(counts), 1.0) or max(counts) < 64
+
+
+# ----------------------------------------------------------------------------------------------
+# Moving rows between ranks
+# ----------------------------------------------------------------------------------------------
+def exchange_rows(comm, destination: np.ndarray, arrays: dict) -> dict:
+    """Collective. Send row i of every array to rank ``destination[i]`` (−1: nowhere); returns the
+    rows received from all ranks, in rank order, as a dict of arrays like ``arrays``."""
+    order = np.argsort(destination, kind="stable")
+    ranks = destination[order]
+    edges = np.searchsorted(ranks, np.arange(comm.size + 1))
+    outgoing = [{name: values[order[edges[r]:edges[r + 1]]] for name, values in arrays.items()}
+                if edges[r + 1] > edges[r] else None for r in range(comm.size)]
+    incoming = [part for part in comm.alltoall(outgoing) if part is not None]
+    return {name: np.concatenate([values[:0]] + [part[name] for part in incoming]) for name, values in arrays.items()}
+
+
+def particle_rows(particles: ParticleState, rows: np.ndarray | slice = slice(None)) -> dict:
+    return {name: getattr(particles, name)[rows] for name in PARTICLE_FIELDS}
+
+
+def particles_of(rows: dict) -> ParticleState:
+    """A ``ParticleState`` of the rows (dict of its fields), sorted by id."""
+    order = np.argsort(rows["id"], kind="stable")
+    return ParticleState(**{name: np.asarray(rows[name])[order] for name in PARTICLE_FIELDS})
+
+
+def migrate(comm, partition: Partition, particles: ParticleState, extra: dict | None = None):
+    """Collective. The particles whose centre lies in another rank's box go to that rank, with
+    their rows of ``extra`` (arrays over particles, e.g. the last hydrodynamic force). Returns the
+    particles this rank owns now (sorted by id) and their rows of ``extra``."""
+    extra = {} if extra is None else extra
+    owner = partition.owner_of(particles.x)
+    leaving = owner != comm.rank
+    staying = ~leaving
+    moved = comm.allreduce(int(leaving.sum()), op=MPI.SUM) if comm.size > 1 else 0
+    if moved == 0:
+        return particles, extra
+    rows = {**particle_rows(particles), **{f"extra:{k}": v for k, v in extra.items()}}
+    arrived = exchange_rows(comm, np.where(leaving, owner, -1), rows)
+    joined = {name: np.concatenate([values[staying], arrived[name]]) for name, values in rows.items()}
+    order = np.argsort(joined["id"], kind="stable")
+    result = ParticleState(**{name: joined[name][order] for name in PARTICLE_FIELDS})
+    return result, {k: joined[f"extra:{k}"][order] for k in extra}
+
+
+def gather(comm, particles: ParticleState) -> ParticleState:
+    """Collective. Every rank's particles on every rank, sorted by id (for output and checkpoints)."""
+    if comm.size == 1:
+        return particles
+    parts = comm.allgather(particle_rows(particles))
+    return particles_of({name: np.concatenate([part[name] for part in parts]) for name in PARTICLE_FIELDS})
+
+
+def keep_owned(comm, partition: Partition, particles: ParticleState) -> np.ndarray:
+    """(n,) bool: the rows of a state every rank holds whole that this rank owns."""
+    return partition.owner_of(particles.x) == comm.rank
+
+
+# ----------------------------------------------------------------------------------------------
+# Ghost copies
+# ----------------------------------------------------------------------------------------------
+@dataclass
+class Halo:
+    """The ghost copies of one contact step on this rank (local rows: owned and ghost particles
+    together, sorted by id).
+
+    owned : (n_local,) bool; send : per neighbour rank, the local rows of owned particles it holds
+    as ghosts; receive : per neighbour rank, the local rows of its particles held here.
+
+    Notes
+    -----
+    ``to_ghosts`` copies owners' rows to their ghosts, ``to_owners`` adds the ghosts' rows to their
+    owners' (and zeroes them): one message each way per neighbour, none between ranks that share
+    no ghost.
+    """
+
+    comm: object
+    owned: np.ndarray
+    send: dict
+    receive: dict
+
+    @classmethod
+    def build(cls, comm, partition: Partition, particles: ParticleState, width: np.ndarray | float):
+        """Collective. The ghosts of every rank's ``particles`` (owned), sent to each rank whose box
+        lies within ``width`` (m; per particle, or one value) of the centre. Returns the halo and
+        the local particles (owned and ghosts, sorted by id)."""
+        width = np.broadcast_to(np.asarray(width, float), (len(particles),))
+        lower, upper = partition.lower[comm.rank], partition.upper[comm.rank]
+        edge = np.minimum(particles.x - lower, upper - particles.x).min(axis=1, initial=np.inf) \
+            if len(particles) else np.zeros(0)
+        near = np.flatnonzero(edge < width)
+        reach = partition.distance(particles.x[near]) < width[near, None]
+        reach[:, comm.rank] = False
+        row, rank = np.nonzero(reach)
+        sources = near[row]
+        rows = {**particle_rows(particles, sources), "row": sources}
+        arrived = exchange_rows(comm, rank, {**rows, "from": np.full(len(sources), comm.rank)})
+        n_owned = len(particles)
+        joined = {name: np.concatenate([getattr(particles, name), arrived[name]]) for name in PARTICLE_FIELDS}
+        order = np.argsort(joined["id"], kind="stable")
+        local = ParticleState(**{name: joined[name][order] for name in PARTICLE_FIELDS})
+        where = np.empty(len(order), np.int64)
+        where[order] = np.arange(len(order))                 # joined row → local row
+        owned = np.zeros(len(order), bool)
+        owned[where[:n_owned]] = True
+        send = {int(r): where[sources[rank == r]] for r in np.unique(rank)}   # in the order sent
+        ghost_rows = where[n_owned:]
+        receive = {int(r): ghost_rows[arrived["from"] == r] for r in np.unique(arrived["from"])}
+        return cls(comm, owned, send, receive), local
+
+    def _swap(self, outgoing: dict, incoming: dict, array: np.ndarray, combine) -> None:
+        """Send array[outgoing[r]] to each r; each received block goes to array[incoming[r]] by ``combine``."""
+        shape = array.shape[1:]
+        requests, buffers = [], {}
+        for r, rows in incoming.items():
+            buffers[r] = np.empty((len(rows),) + shape, array.dtype)
+            requests.append(self.comm.Irecv(buffers[r], source=r, tag=77))
+        for r, rows in outgoing.items():
+            requests.append(self.comm.Isend(np.ascontiguousarray(array[rows]), dest=r, tag=77))
+        MPI.Request.Waitall(requests)
+        for r, rows in incoming.items():
+            combine(array, rows, buffers[r])
+
+    def to_ghosts(self, *arrays: np.ndarray) -> None:
+        """Collective. Each ghost row takes its owner's value, in place."""
+        for array in arrays:
+            self._swap(self.send, self.receive, array, _assign)
+
+    def to_owners(self, *arrays: np.ndarray) -> None:
+        """Collective. Each ghost row is added to its owner's row and set to zero, in place."""
+        for array in arrays:
+            self._swap(self.receive, self.send, array, np.add.at)
+            for rows in self.receive.values():
+                array[rows] = 0
+
+    def merge(self, reference: tuple, *arrays: np.ndarray) -> None:
+        """Collective. Shadow copies changed by this rank: the change of each ghost row since
+        ``reference`` (arrays as they were at the last merge) is added to its owner, and the owners'
+        values (their own changes and every rank's on their ghosts) return to the ghosts; the
+        reference arrays take the merged values. The block Gauss–Seidel's exchange per sweep."""
+        ghosts = ~self.owned
+        for array, before in zip(arrays, reference):
+            change = np.where(ghosts[:, None] if array.ndim > 1 else ghosts, array - before, 0)
+            self.to_owners(change)
+            array += np.where(self.owned[:, None] if array.ndim > 1 else self.owned, change, 0)
+            self.to_ghosts(array)
+            before[:] = array
+
+
+def _assign(array, rows, values):
+    array[rows] = values
+
+
+# ----------------------------------------------------------------------------------------------
+# Particles against the mesh
+# ----------------------------------------------------------------------------------------------
+def cell_boxes(comm, mesh) -> np.ndarray:
+    """Collective. (ranks, 2, 3): the bounding box of each rank's owned cells (empty: inverted)."""
+    corners = mesh.vertex_xyz[mesh.cell_vertices[:mesh.n_owned_cells]].reshape(-1, 3)
+    box = np.stack([corners.min(axis=0, initial=np.inf), corners.max(axis=0, initial=-np.inf)])
+    return np.array(comm.allgather(box))
+
+
+def inside_domain(comm, mesh, boxes: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Collective. (n,) bool: whether each of this rank's ``points`` (n, 3), different on each rank,
+    lies in some rank's owned cells. A point not in this rank's cells is asked of the ranks whose
+    cells' box (``cell_boxes``) holds it: two exchanges, of those points only."""
+    found = mesh.find_owned_cells(points) >= 0
+    if comm.size == 1:
+        return found
+    rest = np.flatnonzero(~found)
+    slack = 1e-9 * np.abs(boxes).max(initial=1.0)
+    near = ((points[rest, None, :] >= boxes[None, :, 0] - slack)
+            & (points[rest, None, :] <= boxes[None, :, 1] + slack)).all(axis=2)
+    near[:, comm.rank] = False
+    row, rank = np.nonzero(near)
+    asked = exchange_rows(comm, rank, {"x": points[rest[row]], "row": rest[row],
+                                       "from": np.full(len(row), comm.rank)})
+    held = (mesh.find_owned_cells(asked["x"]) >= 0).astype(np.int64)
+    answers = exchange_rows(comm, asked["from"], {"row": asked["row"], "held": held})
+    found[answers["row"][answers["held"] > 0]] = True
+    return found
