@@ -126,25 +126,36 @@ def quantile_cut(comm, coordinate: np.ndarray, node: np.ndarray, low: np.ndarray
     return np.where(total > 0, hi, 0.5 * (low + high))
 
 
-def balanced(comm, n_owned: int) -> bool:
-    """Collective. Whether no rank owns more than IMBALANCE × the mean number of particles."""
-    counts = comm.allgather(int(n_owned))
-    return max(counts) <= IMBALANCE * max(np.mean(counts), 1.0) or max(counts) < 64
-
-
 # ----------------------------------------------------------------------------------------------
 # Moving rows between ranks
 # ----------------------------------------------------------------------------------------------
 def exchange_rows(comm, destination: np.ndarray, arrays: dict) -> dict:
     """Collective. Send row i of every array to rank ``destination[i]`` (−1: nowhere); returns the
     rows received from all ranks, in rank order, as a dict of arrays like ``arrays``."""
-    order = np.argsort(destination, kind="stable")
-    ranks = destination[order]
-    edges = np.searchsorted(ranks, np.arange(comm.size + 1))
-    outgoing = [{name: values[order[edges[r]:edges[r + 1]]] for name, values in arrays.items()}
-                if edges[r + 1] > edges[r] else None for r in range(comm.size)]
-    incoming = [part for part in comm.alltoall(outgoing) if part is not None]
-    return {name: np.concatenate([values[:0]] + [part[name] for part in incoming]) for name, values in arrays.items()}
+    return exchange_groups(comm, [(destination, arrays)])[0]
+
+
+def exchange_groups(comm, groups: list) -> list[dict]:
+    """Collective. ``exchange_rows`` of several groups (destination, arrays) of rows in one
+    exchange; rows whose destination is this rank stay, without a message, ahead of those received."""
+    outgoing = [[] for _ in range(comm.size)]
+    for destination, arrays in groups:
+        order = np.argsort(destination, kind="stable")
+        ranks = destination[order]
+        edges = np.searchsorted(ranks, np.arange(comm.size + 1))
+        for r in range(comm.size):
+            rows = order[edges[r]:edges[r + 1]]
+            outgoing[r].append({name: values[rows] for name, values in arrays.items()} if len(rows) else None)
+    staying = outgoing[comm.rank]
+    outgoing[comm.rank] = None
+    outgoing = [None if parts is None or all(part is None for part in parts) else parts for parts in outgoing]
+    incoming = [parts for parts in comm.alltoall(outgoing) if parts is not None]
+    result = []
+    for g, (_, arrays) in enumerate(groups):
+        parts = [staying[g]] + [parts[g] for parts in incoming]
+        result.append({name: np.concatenate([values[:0]] + [part[name] for part in parts if part is not None])
+                       for name, values in arrays.items()})
+    return result
 
 
 def particle_rows(particles: ParticleState, rows: np.ndarray | slice = slice(None)) -> dict:
@@ -157,36 +168,12 @@ def particles_of(rows: dict) -> ParticleState:
     return ParticleState(**{name: np.asarray(rows[name])[order] for name in PARTICLE_FIELDS})
 
 
-def migrate(comm, partition: Partition, particles: ParticleState, extra: dict | None = None):
-    """Collective. The particles whose centre lies in another rank's box go to that rank, with
-    their rows of ``extra`` (arrays over particles, e.g. the last hydrodynamic force). Returns the
-    particles this rank owns now (sorted by id) and their rows of ``extra``."""
-    extra = {} if extra is None else extra
-    owner = partition.owner_of(particles.x)
-    leaving = owner != comm.rank
-    staying = ~leaving
-    moved = comm.allreduce(int(leaving.sum()), op=MPI.SUM) if comm.size > 1 else 0
-    if moved == 0:
-        return particles, extra
-    rows = {**particle_rows(particles), **{f"extra:{k}": v for k, v in extra.items()}}
-    arrived = exchange_rows(comm, np.where(leaving, owner, -1), rows)
-    joined = {name: np.concatenate([values[staying], arrived[name]]) for name, values in rows.items()}
-    order = np.argsort(joined["id"], kind="stable")
-    result = ParticleState(**{name: joined[name][order] for name in PARTICLE_FIELDS})
-    return result, {k: joined[f"extra:{k}"][order] for k in extra}
-
-
 def gather(comm, particles: ParticleState) -> ParticleState:
     """Collective. Every rank's particles on every rank, sorted by id (for output and checkpoints)."""
     if comm.size == 1:
         return particles
     parts = comm.allgather(particle_rows(particles))
     return particles_of({name: np.concatenate([part[name] for part in parts]) for name in PARTICLE_FIELDS})
-
-
-def keep_owned(comm, partition: Partition, particles: ParticleState) -> np.ndarray:
-    """(n,) bool: the rows of a state every rank holds whole that this rank owns."""
-    return partition.owner_of(particles.x) == comm.rank
 
 
 # ----------------------------------------------------------------------------------------------
@@ -282,34 +269,3 @@ class Halo:
 
 def _assign(array, rows, values):
     array[rows] = values
-
-
-# ----------------------------------------------------------------------------------------------
-# Particles against the mesh
-# ----------------------------------------------------------------------------------------------
-def cell_boxes(comm, mesh) -> np.ndarray:
-    """Collective. (ranks, 2, 3): the bounding box of each rank's owned cells (empty: inverted)."""
-    corners = mesh.vertex_xyz[mesh.cell_vertices[:mesh.n_owned_cells]].reshape(-1, 3)
-    box = np.stack([corners.min(axis=0, initial=np.inf), corners.max(axis=0, initial=-np.inf)])
-    return np.array(comm.allgather(box))
-
-
-def inside_domain(comm, mesh, boxes: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """Collective. (n,) bool: whether each of this rank's ``points`` (n, 3), different on each rank,
-    lies in some rank's owned cells. A point not in this rank's cells is asked of the ranks whose
-    cells' box (``cell_boxes``) holds it: two exchanges, of those points only."""
-    found = mesh.find_owned_cells(points) >= 0
-    if comm.size == 1:
-        return found
-    rest = np.flatnonzero(~found)
-    slack = 1e-9 * np.abs(boxes).max(initial=1.0)
-    near = ((points[rest, None, :] >= boxes[None, :, 0] - slack)
-            & (points[rest, None, :] <= boxes[None, :, 1] + slack)).all(axis=2)
-    near[:, comm.rank] = False
-    row, rank = np.nonzero(near)
-    asked = exchange_rows(comm, rank, {"x": points[rest[row]], "row": rest[row],
-                                       "from": np.full(len(row), comm.rank)})
-    held = (mesh.find_owned_cells(asked["x"]) >= 0).astype(np.int64)
-    answers = exchange_rows(comm, asked["from"], {"row": asked["row"], "held": held})
-    found[answers["row"][answers["held"] > 0]] = True
-    return found

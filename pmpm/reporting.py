@@ -150,12 +150,17 @@ def summary(model, state, status: str, seconds: dict) -> dict:
     return {
         "case": str(model.case.path), "status": status, "ranks": model.comm.size,
         "cells": model.mesh.n_global_cells, "particles": count, "particles_removed": state.removed,
-        **({"particles_per_rank": {"largest_owned": state.ranks_seen.get("owned", count),
-                                   "largest_ghosts": state.ranks_seen.get("ghosts", 0)}} if owned else {}),
+        **({"particles_per_rank": largest_per_rank(model.comm, state.ranks_seen)} if owned else {}),
         "steps": state.step, "simulated_time": state.time, "models": model.case.models(),
         "wall_seconds": seconds,
         "diagnostics": diagnostics(model, state),
     }
+
+
+def largest_per_rank(comm, seen: dict) -> dict:
+    """Collective. The most owned and ghost particles a rank held in a step of the run."""
+    owned, ghosts = np.max(comm.allgather((seen.get("owned", 0), seen.get("ghosts", 0))), axis=0)
+    return {"largest_owned": int(owned), "largest_ghosts": int(ghosts)}
 
 
 def diagnostics(model, state) -> dict:

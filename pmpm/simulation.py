@@ -19,7 +19,8 @@ from . import checkpoint, checks, io, reporting
 from .bodies import Body, build_bodies
 from .case import Case, case_path, load_case, suggest
 from .collisions import (CollisionSettings, ContactMemory, advance_with_collisions, build_walls,
-                         check_initial_particles, collision_settings)
+                         check_initial_particles, closest_points_on_triangles, collision_settings)
+from .collisions.walls import particles_bounce
 from .collisions.subdomains import advance_owned
 from .coupling import CouplingMemory, External, PatchForcing, PenaltyForcing, build_forcing, volume_fraction
 from .coupling.bodies import BodyForcing
@@ -29,8 +30,8 @@ from .forces import field_forces_of_case, gravity_buoyancy
 from .injection import Injector, NewParticles, build_injectors, initial_particles
 from .placement import place_releases
 from .mesh import Mesh
-from .ownership import Halo, Partition, balanced, bisect, cell_boxes, exchange_rows, inside_domain, migrate
-from .parallel import agree, allreduce_sum, print0
+from .ownership import IMBALANCE, Halo, Partition, bisect, exchange_groups, particle_rows, particles_of
+from .parallel import allreduce_sum, print0
 from .particles import FIXED, ParticleState, accelerate
 from .reporting import StageTimes
 from .signals import StopRequests
@@ -55,7 +56,7 @@ class Model:
     contact_settings: CollisionSettings | None
     bodies: tuple[Body, ...] = ()
     body_forcing: BodyForcing | None = None
-    cell_boxes: np.ndarray | None = None   # (ranks, 2, 3) each rank's owned cells' box, where ranks own particles
+    exits: tuple | None = None   # where ranks own particles: the triangles particles leave through (a, b, c, normal)
 
     @property
     def fluid_density(self) -> float:
@@ -96,9 +97,19 @@ def build_model(comm, case: Case, mesh: Mesh) -> Model:
         forcing = build_forcing(mesh, case.coupling, case.fluid)
         if bodies:
             body_forcing = BodyForcing(mesh, bodies, case.coupling, case.fluid.density, case.fluid.viscosity)
-    boxes = cell_boxes(comm, mesh) if flow is None and comm.size > 1 else None
+    exits = exit_triangles(case, mesh) if flow is None and comm.size > 1 else None
     return Model(comm, case, mesh, flow, forcing, build_injectors(case),
-                 collision_settings(case) if case.collisions else None, bodies, body_forcing, boxes)
+                 collision_settings(case) if case.collisions else None, bodies, body_forcing, exits)
+
+
+def exit_triangles(case: Case, mesh: Mesh) -> tuple:
+    """Collective. The boundary triangles particles can leave the domain through, the same on every
+    rank: those that are not walls to them (``particles_bounce``), every one without [collisions];
+    as (a, b, c) vertices (m, 3) each and the unit normal into the domain (m, 3)."""
+    names = [name for name in mesh.boundary_names
+             if not case.collisions or not particles_bounce(case.boundaries.get(name))]
+    triangles, _, normal = mesh.boundary_triangles(names)
+    return triangles[:, 0], triangles[:, 1], triangles[:, 2], normal
 
 
 def initial_state(model: Model) -> RunState:
@@ -172,16 +183,15 @@ def advance(model: Model, state: RunState, dt: float, times: StageTimes) -> RunS
         state = move_particles(model, state, force, torque, dt)
     # 8. particles that left the domain are removed; particles whose centre changed rank migrate
     with times.stage("owners"):
-        state = remove_outside(model, state)
-        if state.partition is not None:
-            state = migrate_particles(model, state)
+        state = remove_outside(model, state) if state.partition is None else migrate_particles(model, state, dt)
     # 1 (of the next step). particles released within this step, where they are at its end
     state = replace(state, fresh_from=state.next_id)
     if model.injectors:
         with times.stage("injection"):
             state = inject(model, state, state.time + dt)
     state = replace(state, time=state.time + dt, step=state.step + 1, dt=dt)
-    check_finite(state.particles, state.step, state.time, model.comm if state.partition is not None else None)
+    if state.partition is None:   # (else checked by migrate_particles)
+        check_finite(state.particles, state.step, state.time)
     return state
 
 
@@ -328,8 +338,7 @@ def move_particles(model: Model, state: RunState, force: np.ndarray, torque: np.
             if state.partition is not None:
                 result = advance_owned(model.comm, state.partition, particles, walls, dt / substeps,
                                        model.contact_settings, contacts)
-                seen = {key: max(state.ranks_seen.get(key, 0), model.comm.allreduce(result.stats.pop(key), op=MPI.MAX))
-                        for key in ("owned", "ghosts")}
+                seen = {key: max(state.ranks_seen.get(key, 0), result.stats.pop(key)) for key in ("owned", "ghosts")}
                 state = replace(state, ranks_seen=seen)
             else:
                 result = advance_with_collisions(particles, walls, dt / substeps, model.contact_settings, contacts)
@@ -343,59 +352,98 @@ def move_particles(model: Model, state: RunState, force: np.ndarray, torque: np.
 
 def remove_outside(model: Model, state: RunState) -> RunState:
     """Collective. Particles whose centre left the domain are removed (counted in ``removed``)."""
-    if state.partition is not None:   # each rank its own particles
-        outside = ~inside_domain(model.comm, model.mesh, model.cell_boxes, state.particles.x)
-        removed = model.comm.allreduce(int(outside.sum()))
-    else:
-        if len(state.particles) == 0:
-            return state
-        outside = ~model.mesh.inside_domain(state.particles.x)
-        removed = int(outside.sum())
-    if removed == 0:
+    if len(state.particles) == 0:
         return state
-    return replace(state, particles=state.particles.without(outside), removed=state.removed + removed,
+    outside = ~model.mesh.inside_domain(state.particles.x)
+    if not outside.any():
+        return state
+    return replace(state, particles=state.particles.without(outside), removed=state.removed + int(outside.sum()),
                    hydro_force=state.hydro_force[~outside], hydro_torque=state.hydro_torque[~outside])
 
 
-def migrate_particles(model: Model, state: RunState) -> RunState:
-    """Collective. Particles whose centre entered another rank's box go to it, with their last
-    hydrodynamic force and the contact memory of the contacts whose lower-id particle they are; when
-    a rank owns more than ``ownership.IMBALANCE`` × the mean, the boxes are bisected again first."""
-    comm, particles, partition = model.comm, state.particles, state.partition
-    if not balanced(comm, len(particles)):
-        partition = bisect(comm, particles.x)
-    contacts = state.contacts
-    if contacts is not None:   # the memory goes where the contact's lower-id particle goes
-        at = np.minimum(np.searchsorted(particles.id, contacts.first_id), max(len(particles) - 1, 0))
-        held = (at < len(particles)) & (particles.id[at] == contacts.first_id) if len(particles) else \
-            np.zeros(len(contacts), bool)
-        owner = np.where(held, partition.owner_of(particles.x[at]) if len(particles) else -1, -1)
-        rows = contacts.to_arrays()
-        stay = owner == comm.rank
-        arrived = exchange_rows(comm, np.where(stay, -1, owner), rows)
-        joined = {name: np.concatenate([values[stay], arrived[name]]) for name, values in rows.items()}
-        contacts = ContactMemory.from_arrays(joined)
-        order = np.argsort(contacts.keys, kind="stable")
-        contacts = ContactMemory.from_arrays({name: values[order] for name, values in contacts.to_arrays().items()})
-    particles, extra = migrate(comm, partition, particles, {"hydro_force": state.hydro_force,
-                                                            "hydro_torque": state.hydro_torque})
-    return replace(state, particles=particles, hydro_force=extra["hydro_force"], hydro_torque=extra["hydro_torque"],
-                   contacts=contacts, partition=partition)
+def crossed_exits(model: Model, particles: ParticleState, dt: float) -> np.ndarray:
+    """Local. (n,) bool: the particles whose centre crossed an exit triangle (``exit_triangles``) in
+    the last step of ``dt``: those within their travel of an exit, on its far side from the domain.
+
+    Where ranks own particles, this replaces the point location in every rank's cells (a particle's
+    rank is not the rank of its cell): a particle inside the domain leaves only through a boundary
+    that is not a wall to it, and the one it just crossed is within its last step's travel."""
+    a, b, c, normal = model.exits
+    x = particles.x
+    outside = np.zeros(len(x), bool)
+    if len(a) == 0 or len(x) == 0:
+        return outside
+    travel = 1.5 * np.linalg.norm(particles.v, axis=1) * dt + 1e-9 * particles.radius
+    corners = np.concatenate([a, b, c])
+    low, high = corners.min(axis=0), corners.max(axis=0)
+    near = np.flatnonzero(((x >= low - travel[:, None]) & (x <= high + travel[:, None])).all(axis=1))
+    if len(near) == 0:
+        return outside
+    p = np.repeat(near, len(a))
+    k = np.tile(np.arange(len(a)), len(near))
+    q, _ = closest_points_on_triangles(x[p], a[k], b[k], c[k])
+    distance = np.linalg.norm(x[p] - q, axis=1)
+    order = np.lexsort((distance, p))
+    first = np.ones(len(order), bool)
+    first[1:] = p[order][1:] != p[order][:-1]
+    closest = order[first]                        # each near particle's closest exit triangle
+    beyond = np.einsum("ij,ij->i", x[p[closest]] - q[closest], normal[k[closest]]) < 0
+    outside[p[closest][beyond & (distance[closest] <= travel[p[closest]])]] = True
+    return outside
 
 
-def check_finite(particles: ParticleState, step: int, time: float, comm=None) -> None:
-    """Raise NumericalError naming the first particle whose state is not finite (collective with
-    ``comm``: where each rank holds its own particles, every rank raises)."""
+def migrate_particles(model: Model, state: RunState, dt: float) -> RunState:
+    """Collective. Where ranks own particles, stage 8 in one gather of counts and (when a particle
+    changed rank) one exchange: the particles that crossed an exit are removed (``crossed_exits``),
+    the ones whose centre entered another rank's box go to it, with their last hydrodynamic force
+    and the contact memory of the contacts whose lower-id particle they are; when a rank owns more
+    than ``ownership.IMBALANCE`` × the mean, the boxes are bisected again first. A particle whose
+    state is not finite stops the run on every rank (NumericalError)."""
+    comm, partition = model.comm, state.partition
+    outside = crossed_exits(model, state.particles, dt)
+    particles = state.particles.without(outside)
+    force, torque = state.hydro_force[~outside], state.hydro_torque[~outside]
     bad = ~np.isfinite(particles.x).all(axis=1) | ~np.isfinite(particles.v).all(axis=1)
-    error = None
+    owner = partition.owner_of(particles.x)
+    counts = np.array(comm.allgather((len(particles), int((owner != comm.rank).sum()), int(outside.sum()),
+                                      int(particles.id[np.argmax(bad)]) if bad.any() else -1)))
+    if (counts[:, 3] >= 0).any():
+        pid = int(counts[np.argmax(counts[:, 3] >= 0), 3])
+        raise NumericalError(f"step {state.step + 1}, t = {state.time + dt:.6g} s: particle {pid} has a non-finite "
+                             "position or velocity; reduce [run] dt")
+    state = replace(state, removed=state.removed + int(counts[:, 2].sum()))
+    if counts[:, 0].max() > IMBALANCE * max(counts[:, 0].mean(), 1.0) and counts[:, 0].max() >= 64:
+        partition = bisect(comm, particles.x)
+        owner = partition.owner_of(particles.x)
+    elif counts[:, 1].sum() == 0:
+        return replace(state, particles=particles, hydro_force=force, hydro_torque=torque)
+    contacts = state.contacts
+    groups = [(owner, {**particle_rows(particles), "hydro_force": force, "hydro_torque": torque})]
+    if contacts is not None:   # the memory goes where the contact's lower-id particle goes
+        at = np.searchsorted(particles.id, contacts.first_id)
+        held = at < len(particles)
+        held[held] = particles.id[at[held]] == contacts.first_id[held]
+        groups.append((np.where(held, owner[np.minimum(at, len(particles) - 1)] if len(particles) else -1, -1),
+                       contacts.to_arrays()))
+    moved, *kept = exchange_groups(comm, groups)
+    order = np.argsort(moved["id"], kind="stable")
+    particles = particles_of(moved)
+    state = replace(state, particles=particles, hydro_force=moved["hydro_force"][order],
+                    hydro_torque=moved["hydro_torque"][order], partition=partition)
+    if contacts is not None:
+        kept = kept[0]
+        order = np.argsort(ContactMemory.key_of(kept["first_id"], kept["second_id"]), kind="stable")
+        state = replace(state, contacts=ContactMemory.from_arrays({k: v[order] for k, v in kept.items()}))
+    return state
+
+
+def check_finite(particles: ParticleState, step: int, time: float) -> None:
+    """Raise NumericalError naming the first particle whose state is not finite."""
+    bad = ~np.isfinite(particles.x).all(axis=1) | ~np.isfinite(particles.v).all(axis=1)
     if bad.any():
         pid = int(particles.id[np.argmax(bad)])
-        error = NumericalError(f"step {step}, t = {time:.6g} s: particle {pid} has a non-finite position or "
-                               "velocity; reduce [run] dt")
-    if comm is not None:
-        agree(comm, error)
-    elif error is not None:
-        raise error
+        raise NumericalError(f"step {step}, t = {time:.6g} s: particle {pid} has a non-finite position or "
+                             "velocity; reduce [run] dt")
 
 
 # ----------------------------------------------------------------------------------------------

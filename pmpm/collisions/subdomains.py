@@ -54,11 +54,12 @@ def advance_owned(comm, partition: Partition, state: ParticleState, walls: Walls
     walls_after = walls.moved(dt) if walls is not None else None
     kernels = jit.kernels()
     owned_bodies = Bodies.of(state)
-    free_anywhere = comm.allreduce(bool(owned_bodies.free.any()), op=MPI.LOR)
+    free_anywhere, top, r_max, population = reduced(comm, max_of=(float(owned_bodies.free.any()),
+                                                                  owned_bodies.top_speed(),
+                                                                  float(state.radius.max(initial=0.0))),
+                                                    sum_of=(len(state),))
     used_walls = walls if walls is not None and len(walls) and free_anywhere else None
     wall_speed = float(used_walls.top_speed.max()) if used_walls is not None else 0.0
-    top, r_max = largest(comm, owned_bodies.top_speed(), float(state.radius.max(initial=0.0)))
-    population = comm.allreduce(len(state))
     speed = max(SEARCH_SLACK * top, settings.rest_speed, 2.0 * wall_speed)
     reach = 2.0 * speed * dt
     # every particle within contact range of a rank's box is a ghost there
@@ -89,11 +90,13 @@ def advance_owned(comm, partition: Partition, state: ParticleState, walls: Walls
     return ContactStep(summed_stats(comm, counters, extra), memory, walls_after)
 
 
-def largest(comm, *values: float) -> np.ndarray:
-    """Collective. Each value's maximum over ranks, in one reduction."""
-    values = np.array(values, float)
-    comm.Allreduce(MPI.IN_PLACE, values, op=MPI.MAX)
-    return values
+def reduced(comm, max_of: tuple, sum_of: tuple) -> list:
+    """Collective. The maxima over ranks of ``max_of`` and the sums of ``sum_of``, from one gather."""
+    values = np.array(max_of + sum_of, float)
+    every = np.empty((comm.size, len(values)))
+    comm.Allgather(values, every)
+    return [float(v) for v in every[:, :len(max_of)].max(axis=0)] + \
+        [int(round(v)) for v in every[:, len(max_of):].sum(axis=0)]
 
 
 def summed_stats(comm, counters: np.ndarray, extra: dict) -> dict:
@@ -120,13 +123,12 @@ def gathered_step(comm, state, local, halo, record, walls, dt, settings, memory,
     involved[record.first] = True
     involved[record.second] = True
     involved = involved[:n] & halo.owned
-    parts = comm.allgather(particle_rows(local, involved))
-    cluster = particles_of({name: np.concatenate([part[name] for part in parts]) for name in parts[0]})
-    held = np.isin(memory.first_id, cluster.id)
-    remembered = comm.allgather({"first_id": memory.first_id[held], "second_id": memory.second_id[held],
-                                 "normal_impulse": memory.normal_impulse[held],
-                                 "tangential_impulse": memory.tangential_impulse[held]})
-    joined = {name: np.concatenate([part[name] for part in remembered]) for name in remembered[0]}
+    # the memory of the contacts of the particles sent (those whose lower-id particle is owned here)
+    held = np.isin(memory.first_id, local.id[involved])
+    parts = comm.allgather((particle_rows(local, involved),
+                            {name: values[held] for name, values in memory.to_arrays().items()}))
+    cluster = particles_of({name: np.concatenate([part[0][name] for part in parts]) for name in parts[0][0]})
+    joined = {name: np.concatenate([part[1][name] for part in parts]) for name in parts[0][1]}
     order = np.argsort(ContactMemory.key_of(joined["first_id"], joined["second_id"]), kind="stable")
     memory = ContactMemory(*(joined[name][order] for name in ("first_id", "second_id", "normal_impulse",
                                                                "tangential_impulse")))
