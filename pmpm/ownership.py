@@ -21,6 +21,7 @@ from mpi4py import MPI
 
 from .particles import ParticleState
 
+MAX_HOLDERS = 16       # the most ranks that may hold one particle (its owner and its ghosts')
 IMBALANCE = 1.15        # the boxes are bisected again when a rank owns this × the mean number of particles
 BINS, ROUNDS = 64, 3    # a cut is placed by ROUNDS histograms of BINS bins (to 1/64³ of the particles' extent)
 PARTICLE_FIELDS = tuple(f.name for f in fields(ParticleState))
@@ -185,19 +186,22 @@ class Halo:
     together, sorted by id).
 
     owned : (n_local,) bool; send : per neighbour rank, the local rows of owned particles it holds
-    as ghosts; receive : per neighbour rank, the local rows of its particles held here.
+    as ghosts; receive : per neighbour rank, the local rows of its particles held here; shared :
+    per rank, the local rows of the particles both hold (owned or ghost on either), by id.
 
     Notes
     -----
     ``to_ghosts`` copies owners' rows to their ghosts, ``to_owners`` adds the ghosts' rows to their
     owners' (and zeroes them): one message each way per neighbour, none between ranks that share
-    no ghost.
+    no ghost. ``merge`` takes one message each way between ranks that hold a particle together:
+    each holder sends its change to the others, and all add the changes in rank order.
     """
 
     comm: object
     owned: np.ndarray
     send: dict
     receive: dict
+    shared: dict
 
     @classmethod
     def build(cls, comm, partition: Partition, particles: ParticleState, width: np.ndarray | float):
@@ -213,7 +217,14 @@ class Halo:
         reach[:, comm.rank] = False
         row, rank = np.nonzero(reach)
         sources = near[row]
-        rows = {**particle_rows(particles, sources), "row": sources}
+        holders = np.full((len(near), MAX_HOLDERS), -1, np.int64)   # every rank holding the particle
+        count = reach.sum(axis=1)
+        if len(near) and count.max() >= MAX_HOLDERS:
+            raise RuntimeError(f"a particle is within contact range of {count.max() + 1} ranks' boxes; at most "
+                               f"{MAX_HOLDERS} are supported (fewer ranks, or larger boxes)")
+        holders[row, np.arange(len(row)) - np.searchsorted(row, row)] = rank
+        holders[np.arange(len(near)), count] = comm.rank
+        rows = {**particle_rows(particles, sources), "holders": holders[row]}
         arrived = exchange_rows(comm, rank, {**rows, "from": np.full(len(sources), comm.rank)})
         n_owned = len(particles)
         joined = {name: np.concatenate([getattr(particles, name), arrived[name]]) for name in PARTICLE_FIELDS}
@@ -226,7 +237,14 @@ class Halo:
         send = {int(r): where[sources[rank == r]] for r in np.unique(rank)}   # in the order sent
         ghost_rows = where[n_owned:]
         receive = {int(r): ghost_rows[arrived["from"] == r] for r in np.unique(arrived["from"])}
-        return cls(comm, owned, send, receive), local
+        # who holds what together: an owned particle with the ranks it went to, a ghost with its holders
+        local_row = np.concatenate([np.repeat(where[near], MAX_HOLDERS), np.repeat(ghost_rows, MAX_HOLDERS)])
+        other = np.concatenate([holders.ravel(), arrived["holders"].ravel()])
+        keep = (other >= 0) & (other != comm.rank)
+        local_row, other = local_row[keep], other[keep]
+        pairs = np.lexsort((local_row, other))
+        shared = {int(r): local_row[pairs][other[pairs] == r] for r in np.unique(other)}
+        return cls(comm, owned, send, receive, shared), local
 
     def _swap(self, outgoing: dict, incoming: dict, array: np.ndarray, combine) -> None:
         """Send array[outgoing[r]] to each r; each received block goes to array[incoming[r]] by ``combine``."""
@@ -254,17 +272,40 @@ class Halo:
                 array[rows] = 0
 
     def merge(self, reference: tuple, *arrays: np.ndarray) -> None:
-        """Collective. Shadow copies changed by this rank: the change of each ghost row since
-        ``reference`` (arrays as they were at the last merge) is added to its owner, and the owners'
-        values (their own changes and every rank's on their ghosts) return to the ghosts; the
-        reference arrays take the merged values. The block Gauss–Seidel's exchange per sweep."""
-        ghosts = ~self.owned
+        """Collective. Copies of particles changed by the ranks that hold them: each holder's change
+        since ``reference`` (the arrays as they were at the last merge, the same on every holder) is
+        sent to the other holders, and every holder sets reference + the changes of all, added in
+        rank order (so the copies stay equal to the bit); the reference arrays take the merged
+        values. Rows held here only are left as they are. The block Gauss–Seidel's exchange per sweep."""
+        n = len(self.owned)
+        if not self.shared:
+            for array, before in zip(arrays, reference):
+                before[:n] = array[:n]
+            return
+        now = np.hstack([array[:n].reshape(n, -1) for array in arrays])  # (rows past the particles: the world)
+        then = np.hstack([before[:n].reshape(n, -1) for before in reference])
+        change = now - then
+        received = {}
+        requests = []
+        for r, rows in self.shared.items():
+            received[r] = np.empty((len(rows), now.shape[1]))
+            requests.append(self.comm.Irecv(received[r], source=r, tag=78))
+        outgoing = [np.ascontiguousarray(change[rows]) for rows in self.shared.values()]
+        requests += [self.comm.Isend(block, dest=r, tag=78) for r, block in zip(self.shared, outgoing)]
+        MPI.Request.Waitall(requests)
+        rows = np.unique(np.concatenate(list(self.shared.values())))
+        total = np.zeros_like(now)
+        for r in sorted([*self.shared, self.comm.rank]):
+            if r == self.comm.rank:
+                total[rows] += change[rows]
+            else:
+                total[self.shared[r]] += received[r]
+        now[rows] = then[rows] + total[rows]
+        column = 0
         for array, before in zip(arrays, reference):
-            change = np.where(ghosts[:, None] if array.ndim > 1 else ghosts, array - before, 0)
-            self.to_owners(change)
-            array += np.where(self.owned[:, None] if array.ndim > 1 else self.owned, change, 0)
-            self.to_ghosts(array)
-            before[:] = array
+            width = array[:n].reshape(n, -1).shape[1]
+            array[:n] = before[:n] = now[:, column:column + width].reshape(array[:n].shape)
+            column += width
 
 
 def _assign(array, rows, values):

@@ -58,6 +58,7 @@ def advance_owned(comm, partition: Partition, state: ParticleState, walls: Walls
                                                                   owned_bodies.top_speed(),
                                                                   float(state.radius.max(initial=0.0))),
                                                     sum_of=(len(state),))
+    population = int(round(population))
     used_walls = walls if walls is not None and len(walls) and free_anywhere else None
     wall_speed = float(used_walls.top_speed.max()) if used_walls is not None else 0.0
     speed = max(SEARCH_SLACK * top, settings.rest_speed, 2.0 * wall_speed)
@@ -95,8 +96,7 @@ def reduced(comm, max_of: tuple, sum_of: tuple) -> list:
     values = np.array(max_of + sum_of, float)
     every = np.empty((comm.size, len(values)))
     comm.Allgather(values, every)
-    return [float(v) for v in every[:, :len(max_of)].max(axis=0)] + \
-        [int(round(v)) for v in every[:, len(max_of):].sum(axis=0)]
+    return [float(v) for v in every[:, :len(max_of)].max(axis=0)] + [float(v) for v in every[:, len(max_of):].sum(axis=0)]
 
 
 def summed_stats(comm, counters: np.ndarray, extra: dict) -> dict:
@@ -163,7 +163,7 @@ def dense_blocks(halo: Halo, bodies, record, rows, warm_n, warm_t, settings, dt,
     r_first = bodies.radius[first]
     r_second = np.where(wall, 0.0, bodies.radius[second])
     deposition = wall_arrays(walls)[9]
-    if deposition.any() or comm.allreduce(bool(bodies.deposited.any()), op=MPI.LOR):
+    if deposition.any():   # (the same on every rank)
         deposit(halo, bodies, record, rows, r_first, deposition, kernels, counters)
     v, w, inv_m, inv_i = bodies.v, bodies.w, bodies.inv_m, bodies.inv_i
     normal, gap = record.normal, record.gap
@@ -176,26 +176,24 @@ def dense_blocks(halo: Halo, bodies, record, rows, warm_n, warm_t, settings, dt,
     hit_time = np.where(hits & ~touching & np.isfinite(record.time), record.time, 0.0)
     lam_n, lam_t = np.zeros(m), np.zeros((m, 3))
     lam_n[rows], lam_t[rows] = warm_n[rows], warm_t[rows]
-    remembered = comm.allreduce(bool(lam_n.any()), op=MPI.LOR)
     members = np.unique(np.concatenate([first[rows], second[rows]]))
     members = members[members < n]
     owned_members = members[halo.owned[members]]
     v0, w0 = v.copy(), w.copy()
-    energy = comm.allreduce(impulses.kinetic_energy(owned_members, inv_m, inv_i, v, w))
     driven = bodies.driven[first[rows]] | bodies.driven[second[rows]]
     if walls is not None:
         moving = walls.velocity.any(1) | walls.angular_velocity.any(1)
         driven |= wall[rows] & moving[np.maximum(triangle[rows], 0)]
-    driven = comm.allreduce(bool(driven.any()), op=MPI.LOR)
+    scale = max(float(np.abs(closing[rows]).max(initial=0.0)), settings.rest_speed, 1e-300)
+    tol = SWEEP_TOL * settings.rest_speed if settings.rest_speed > 0 else 1e-12 * scale
+    remembered, driven, tol, energy = reduced(comm, max_of=(float(lam_n.any()), float(driven.any()), tol),
+                                              sum_of=(impulses.kinetic_energy(owned_members, inv_m, inv_i, v, w),))
     reference = (v.copy(), w.copy())
     if remembered:
         impulses.warm_start(rows, first, second, normal, r_first, r_second, record.friction, inv_m, inv_i, v, w,
                             lam_n, lam_t)
         halo.merge(reference, v, w)
     budget = settings.dense_sweeps if remembered else COLD_SWEEPS * settings.dense_sweeps
-    scale = max(float(np.abs(closing[rows]).max(initial=0.0)), settings.rest_speed, 1e-300)
-    tol = SWEEP_TOL * settings.rest_speed if settings.rest_speed > 0 else 1e-12 * scale
-    tol = comm.allreduce(tol, op=MPI.MAX)
     contacts = (first, second, normal, r_first, r_second, record.wall_velocity)
     sweeps = block_sweeps(halo, rows, contacts, target, record.friction, bodies, lam_n, lam_t, reference, budget, tol,
                           kernels)
@@ -239,7 +237,9 @@ def block_sweeps(halo: Halo, rows, contacts, target, mu, bodies, lam_n, lam_t, r
                  kernels) -> int:
     """Collective. Sweeps of this rank's contacts ``rows``, the shadow copies merged after each, until
     no owned body's contact-point velocity changed by more than ``tol`` (m/s) in a sweep, on any
-    rank, or ``budget`` sweeps; returns the sweeps made (the same on every rank)."""
+    rank, or ``budget`` sweeps; returns the sweeps made (the same on every rank). A sweep's test is
+    reduced over the ranks while the next sweep runs (a nonblocking reduction, so no sync of its
+    own): the sweeps stop one sweep after the one that converged."""
     first, second, normal, r_first, r_second, u_wall = contacts
     v, w, inv_m, inv_i = bodies.v, bodies.w, bodies.inv_m, bodies.inv_i
     a, b = first[rows], second[rows]
@@ -251,16 +251,22 @@ def block_sweeps(halo: Halo, rows, contacts, target, mu, bodies, lam_n, lam_t, r
     np.maximum.at(arm, a, r_first[rows])
     np.maximum.at(arm, b, r_second[rows])
     watched = np.flatnonzero(np.append(halo.owned, False) & (inv_m > 0) & (arm > 0))
-    done = 0
-    for _ in range(budget):
+    done, pending, largest = 0, None, np.zeros(1)
+    while done < budget:
         before_v, before_w = v[watched], w[watched]
         kernels.impulses.sweep_once(rows, inv_kn, inv_kt, first, second, normal, r_first, r_second, u_wall, target,
                                     mu, inv_m, inv_i, v, w, lam_n, lam_t)
         halo.merge(reference, v, w)
         done += 1
+        if pending is not None:   # the test of the sweep before this one, reduced meanwhile
+            pending.Wait()
+            if largest[0] <= tol:
+                break
         change = np.abs(v[watched] - before_v) + arm[watched, None] * np.abs(w[watched] - before_w)
-        if halo.comm.allreduce(float(change.max(initial=0.0)), op=MPI.MAX) <= tol:
-            break
+        largest = np.array([change.max(initial=0.0)])
+        pending = halo.comm.Iallreduce(MPI.IN_PLACE, largest, op=MPI.MAX)
+    if pending is not None:
+        pending.Wait()
     return done
 
 
