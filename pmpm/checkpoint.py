@@ -32,7 +32,7 @@ from .errors import CaseError
 from .fluid import FluidState
 from .io import SerialOrder, h5py
 from .mesh import match_rows
-from .ownership import Partition, gather
+from .ownership import Partition, bisect, gather
 from .parallel import agree, exscan_offset
 from .particles import ParticleState
 
@@ -142,18 +142,11 @@ def gathered_memory(comm, memory: ContactMemory) -> ContactMemory:
     return ContactMemory.from_arrays({name: values[order] for name, values in joined.to_arrays().items()})
 
 
-def stored_partition(data: dict, ranks: int) -> Partition | None:
-    """The ranks' boxes a checkpoint was written with, if it was written on ``ranks`` ranks owning
-    particles (a restart on as many ranks continues the same trajectory), else None."""
-    if "ownership" not in data:
-        return None
-    boxes = Partition.from_array(data["ownership"]["partition"])
-    return boxes if len(boxes.lower) == ranks else None
-
-
 def restore(comm, data: dict, model, initial, path: Path):
     """Collective. The run state of a checkpoint, for ``model`` (built from the same case), whose
-    initial state ``initial`` gives what the checkpoint leaves out (a case's unmoving walls)."""
+    initial state ``initial`` gives what the checkpoint leaves out (a case's unmoving walls). Where
+    ranks own particles (``initial.partition``), each rank keeps its own, in the boxes the checkpoint
+    was written with if it was written on as many ranks (the same trajectory continues)."""
     attrs, mesh = data["attrs"], model.mesh
     if int(attrs["n_global_cells"]) != mesh.n_global_cells:
         raise CaseError(f"--restart {path}: the checkpoint is of a mesh of {int(attrs['n_global_cells'])} cells, "
@@ -186,6 +179,11 @@ def restore(comm, data: dict, model, initial, path: Path):
                                                                for name in WALL_FIELDS}))
     if "fluid" in data:
         state = replace(state, **restored_fluid(comm, data["fluid"], mesh, path))
+    if initial.partition is not None:   # ranks own particles: the boxes written, on as many ranks
+        stored = Partition.from_array(data["ownership"]["partition"]) if "ownership" in data else None
+        if stored is None or len(stored.lower) != comm.size:
+            stored = bisect(comm, state.particles.x if comm.rank == 0 else np.zeros((0, 3)))
+        state = state.owned_by(comm.rank, stored)
     return state
 
 

@@ -126,24 +126,13 @@ def initial_state(model: Model) -> RunState:
     return distribute(model, replace(state, fresh_from=state.next_id))
 
 
-def distribute(model: Model, state: RunState, partition: Partition | None = None) -> RunState:
-    """Collective. Where ranks own particles (``Model.owns_particles``): a state whose particles every
-    rank holds whole (the case's, a checkpoint's) as each rank's own, in the boxes of ``partition``
-    (by default bisected over the particles) with the contact memory of the contacts whose lower-id
-    particle it owns. Otherwise the state as it is."""
+def distribute(model: Model, state: RunState) -> RunState:
+    """Collective. Where ranks own particles (``Model.owns_particles``): the case's particles, which
+    every rank read whole, as each rank's own, in boxes bisected over them. Otherwise the state."""
     if not model.owns_particles:
         return state
-    comm, particles = model.comm, state.particles
-    if partition is None:
-        partition = bisect(comm, particles.x if comm.rank == 0 else np.zeros((0, 3)))
-    mine = partition.owner_of(particles.x) == comm.rank
-    contacts = state.contacts
-    if contacts is not None:
-        kept = np.isin(contacts.first_id, particles.id[mine])
-        contacts = ContactMemory(contacts.first_id[kept], contacts.second_id[kept], contacts.normal_impulse[kept],
-                                 contacts.tangential_impulse[kept])
-    return replace(state, particles=particles.without(~mine), hydro_force=state.hydro_force[mine],
-                   hydro_torque=state.hydro_torque[mine], contacts=contacts, partition=partition)
+    comm = model.comm
+    return state.owned_by(comm.rank, bisect(comm, state.particles.x if comm.rank == 0 else np.zeros((0, 3))))
 
 
 def add_particles(model: Model, state: RunState, new: NewParticles, validate: bool = False) -> RunState:
@@ -638,8 +627,8 @@ def run_from_arguments(comm, arguments) -> None:
     check_boundaries(case, mesh)
     simulation = Simulation(comm, case, mesh, quiet=arguments.quiet)
     if restart is not None:
-        state = checkpoint.restore(comm, restart, simulation.model, simulation.state, Path(arguments.restart))
-        simulation.state = distribute(simulation.model, state, checkpoint.stored_partition(restart, comm.size))
+        simulation.state = checkpoint.restore(comm, restart, simulation.model, simulation.state,
+                                              Path(arguments.restart))
         print0(comm, f"pmpm: restarting from {arguments.restart} at t = {simulation.state.time:g} s, "
                      f"step {simulation.state.step}")
     writes = checks.before_running(comm, simulation.model, simulation.state, output, arguments.restart)

@@ -6,7 +6,7 @@ reference, and writes it if the step fails; and ``pmpm.checkpoint`` writes and r
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -67,3 +67,17 @@ class RunState:
     body_forces: np.ndarray | None = None
     partition: Partition | None = None
     ranks_seen: dict = field(default_factory=dict)
+
+    def owned_by(self, rank: int, partition: Partition) -> "RunState":
+        """This state, whose particles every rank holds whole (the case's, a checkpoint's), as rank
+        ``rank``'s share in the boxes of ``partition``: its particles and the contact memory of the
+        contacts whose lower-id particle it owns."""
+        particles = self.particles
+        mine = partition.owner_of(particles.x) == rank
+        contacts = self.contacts
+        if contacts is not None:
+            kept = np.isin(contacts.first_id, particles.id[mine])
+            contacts = ContactMemory(contacts.first_id[kept], contacts.second_id[kept], contacts.normal_impulse[kept],
+                                     contacts.tangential_impulse[kept])
+        return replace(self, particles=particles.without(~mine), hydro_force=self.hydro_force[mine],
+                       hydro_torque=self.hydro_torque[mine], contacts=contacts, partition=partition)
