@@ -202,6 +202,7 @@ class Halo:
     send: dict
     receive: dict
     shared: dict
+    sent: int = 0          # bytes this rank has sent, the ghosts included
 
     @classmethod
     def build(cls, comm, partition: Partition, particles: ParticleState, width: np.ndarray | float):
@@ -217,7 +218,7 @@ class Halo:
         reach[:, comm.rank] = False
         row, rank = np.nonzero(reach)
         sources = near[row]
-        holders = np.full((len(near), MAX_HOLDERS), -1, np.int64)   # every rank holding the particle
+        holders = np.full((len(near), MAX_HOLDERS), -1, np.int32)   # every rank holding the particle
         count = reach.sum(axis=1)
         if len(near) and count.max() >= MAX_HOLDERS:
             raise RuntimeError(f"a particle is within contact range of {count.max() + 1} ranks' boxes; at most "
@@ -244,7 +245,8 @@ class Halo:
         local_row, other = local_row[keep], other[keep]
         pairs = np.lexsort((local_row, other))
         shared = {int(r): local_row[pairs][other[pairs] == r] for r in np.unique(other)}
-        return cls(comm, owned, send, receive, shared), local
+        sent = sum(values.nbytes for values in rows.values())
+        return cls(comm, owned, send, receive, shared, sent), local
 
     def _swap(self, outgoing: dict, incoming: dict, array: np.ndarray, combine) -> None:
         """Send array[outgoing[r]] to each r; each received block goes to array[incoming[r]] by ``combine``."""
@@ -253,8 +255,9 @@ class Halo:
         for r, rows in incoming.items():
             buffers[r] = np.empty((len(rows),) + shape, array.dtype)
             requests.append(self.comm.Irecv(buffers[r], source=r, tag=77))
-        for r, rows in outgoing.items():
-            requests.append(self.comm.Isend(np.ascontiguousarray(array[rows]), dest=r, tag=77))
+        blocks = [np.ascontiguousarray(array[rows]) for rows in outgoing.values()]
+        requests += [self.comm.Isend(block, dest=r, tag=77) for r, block in zip(outgoing, blocks)]
+        self.sent += sum(block.nbytes for block in blocks)
         MPI.Request.Waitall(requests)
         for r, rows in incoming.items():
             combine(array, rows, buffers[r])
@@ -271,12 +274,23 @@ class Halo:
             for rows in self.receive.values():
                 array[rows] = 0
 
-    def merge(self, reference: tuple, *arrays: np.ndarray) -> None:
+    def holders(self, touching: np.ndarray) -> np.ndarray:
+        """Collective. (n_local,) for each particle, how many of the ranks holding it have ``touching``
+        (bool per local row) true for it, this one included; 1 where none has."""
+        count = touching.astype(float)[:, None]
+        self.merge((np.zeros_like(count),), count)
+        return np.maximum(np.rint(count[:, 0]), 1.0)
+
+    def merge(self, reference: tuple, *arrays: np.ndarray, split: np.ndarray | None = None) -> None:
         """Collective. Copies of particles changed by the ranks that hold them: each holder's change
         since ``reference`` (the arrays as they were at the last merge, the same on every holder) is
         sent to the other holders, and every holder sets reference + the changes of all, added in
         rank order (so the copies stay equal to the bit); the reference arrays take the merged
-        values. Rows held here only are left as they are. The block Gauss–Seidel's exchange per sweep."""
+        values. Rows held here only are left as they are. The block Gauss–Seidel's exchange per sweep.
+
+        ``split`` (n_local,): the number of holders each particle's mass is split among (mass
+        splitting, Tonge et al. 2012): each holder's copy had 1/split of the mass, and the merged
+        value is reference + the mean of the changes (so still reference + Σ impulses / mass)."""
         n = len(self.owned)
         if not self.shared:
             for array, before in zip(arrays, reference):
@@ -292,6 +306,7 @@ class Halo:
             requests.append(self.comm.Irecv(received[r], source=r, tag=78))
         outgoing = [np.ascontiguousarray(change[rows]) for rows in self.shared.values()]
         requests += [self.comm.Isend(block, dest=r, tag=78) for r, block in zip(self.shared, outgoing)]
+        self.sent += sum(block.nbytes for block in outgoing)
         MPI.Request.Waitall(requests)
         rows = np.unique(np.concatenate(list(self.shared.values())))
         total = np.zeros_like(now)
@@ -300,6 +315,8 @@ class Halo:
                 total[rows] += change[rows]
             else:
                 total[self.shared[r]] += received[r]
+        if split is not None:
+            total[rows] /= split[rows, None]
         now[rows] = then[rows] + total[rows]
         column = 0
         for array, before in zip(arrays, reference):

@@ -158,9 +158,12 @@ def summary(model, state, status: str, seconds: dict) -> dict:
 
 
 def largest_per_rank(comm, seen: dict) -> dict:
-    """Collective. The most owned and ghost particles a rank held in a step of the run."""
-    owned, ghosts = np.max(comm.allgather((seen.get("owned", 0), seen.get("ghosts", 0))), axis=0)
-    return {"largest_owned": int(owned), "largest_ghosts": int(ghosts)}
+    """Collective. The most owned and ghost particles a rank held in a step of the run, and the most
+    bytes a rank sent in one contact step (ghosts, shadow-copy merges, gathered contacts)."""
+    keys = ("owned", "ghosts", "exchanged_bytes")
+    largest = np.max(comm.allgather([seen.get(key, 0) for key in keys]), axis=0)
+    return {"largest_owned": int(largest[0]), "largest_ghosts": int(largest[1]),
+            "largest_bytes_sent_in_a_contact_step": int(largest[2])}
 
 
 def diagnostics(model, state) -> dict:

@@ -30,7 +30,7 @@ from .forces import field_forces_of_case, gravity_buoyancy
 from .injection import Injector, NewParticles, build_injectors, initial_particles
 from .placement import place_releases
 from .mesh import Mesh
-from .ownership import IMBALANCE, Halo, Partition, bisect, exchange_groups, particle_rows, particles_of
+from .ownership import IMBALANCE, bisect, exchange_groups, particle_rows, particles_of
 from .parallel import allreduce_sum, print0
 from .particles import FIXED, ParticleState, accelerate
 from .reporting import StageTimes
@@ -209,19 +209,8 @@ def external_forces(model: Model, state: RunState) -> External:
     case, particles = model.case, state.particles
     force = gravity_buoyancy(particles, np.array(case.run.gravity), model.fluid_density)
     if case.field_forces is not None:
-        force += owned_field_forces(model, state) if state.partition is not None else \
-            field_forces_of_case(particles, state.walls, case.field_forces)
+        force += field_forces_of_case(particles, state.walls, case.field_forces, model.comm, state.partition)
     return External(force, np.zeros_like(force))
-
-
-def owned_field_forces(model: Model, state: RunState) -> np.ndarray:
-    """Collective. Eq. 9–10 on the particles this rank owns, with ghost copies of the particles of
-    other ranks within the cutoff (the default cutoff from the mean diameter over every rank)."""
-    comm, section, particles = model.comm, model.case.field_forces, state.particles
-    count, total = comm.allreduce(np.array([len(particles), particles.radius.sum()]))
-    cutoff = section.cutoff if section.cutoff is not None else 5.0 * 2.0 * total / max(count, 1.0)
-    halo, local = Halo.build(comm, state.partition, particles, cutoff * (1 + 1e-9))
-    return field_forces_of_case(local, state.walls, replace(section, cutoff=cutoff))[halo.owned]
 
 
 def flow_stage(model: Model, state: RunState, external: External, dt: float, times: StageTimes,
@@ -327,7 +316,8 @@ def move_particles(model: Model, state: RunState, force: np.ndarray, torque: np.
             if state.partition is not None:
                 result = advance_owned(model.comm, state.partition, particles, walls, dt / substeps,
                                        model.contact_settings, contacts)
-                seen = {key: max(state.ranks_seen.get(key, 0), result.stats.pop(key)) for key in ("owned", "ghosts")}
+                seen = {key: max(state.ranks_seen.get(key, 0), result.stats.pop(key))
+                        for key in ("owned", "ghosts", "exchanged_bytes")}
                 state = replace(state, ranks_seen=seen)
             else:
                 result = advance_with_collisions(particles, walls, dt / substeps, model.contact_settings, contacts)

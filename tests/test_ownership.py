@@ -170,6 +170,24 @@ def test_crossing_the_cut_back_and_forth_keeps_id_velocity_and_spin(comm):
         assert (np.diff(sides) != 0).sum() >= 3, "it crossed the cut back and forth"
 
 
+@pytest.mark.mpi
+def test_field_forces_reach_across_the_cut(comm):
+    """Eq. 9 between 12 spheres on both sides of x = 0 (cutoff 5 mean diameters): the owned
+    particles' forces equal those of every particle together."""
+    from pmpm.case import Section
+    from pmpm.forces import field_forces_of_case
+    rng = np.random.default_rng(3)
+    state = particles(rng.uniform(-0.05, 0.05, (12, 3)), radius=0.005)
+    section = Section({"cutoff": None, "G_p": 1e-3, "n1": 1.0, "n2": 1.0, "n3": 2.0, "G_w": 0.0, "n4": 1.0,
+                       "n5": 2.0})
+    whole = field_forces_of_case(state, None, section)
+    partition = halves(comm)
+    mine = partition.owner_of(state.x) == comm.rank
+    owned = field_forces_of_case(state.without(~mine), None, section, comm, partition)
+    np.testing.assert_allclose(owned, whole[mine], rtol=1e-12, atol=1e-15)
+    assert comm.allreduce(int(mine.sum())) == 12 and np.abs(whole).max() > 0
+
+
 HOPPER_COUNT, HOPPER_TIME = 1500, 0.5
 
 

@@ -46,7 +46,8 @@ def advance_owned(comm, partition: Partition, state: ParticleState, walls: Walls
     """Collective. ``advance_with_collisions`` for the particles this rank owns (``state``, updated
     in place) among every rank's; ``memory`` holds the contacts whose lower-id particle this rank
     owns, and so does the returned one. ``stats`` are the same on every rank (summed over ranks),
-    with ``owned`` and ``ghosts`` added (this rank's)."""
+    with ``owned``, ``ghosts`` and ``exchanged_bytes`` (sent in the step's ghost exchanges) added,
+    this rank's."""
     if comm.size == 1:
         return advance_with_collisions(state, walls, dt, settings, memory)
     dt = float(dt)
@@ -73,7 +74,7 @@ def advance_owned(comm, partition: Partition, state: ParticleState, walls: Walls
     extra = {"owned": len(state), "ghosts": n - len(state)}
     if not dense:
         step = gathered_step(comm, state, local, halo, record, walls, dt, settings, memory, speed, population)
-        step.stats.update(extra)
+        step.stats.update(extra, exchanged_bytes=halo.sent)   # (this rank's)
         return step
     counters = new_counters()
     warm_n, warm_t = memory.recall(record, local.id)
@@ -88,6 +89,7 @@ def advance_owned(comm, partition: Partition, state: ParticleState, walls: Walls
     state.omega[:] = bodies.w[rows]
     state.deposited[:] = bodies.deposited[rows]
     memory = ContactMemory.remember(record, local.id, lam_n, lam_t, mine)
+    extra["exchanged_bytes"] = halo.sent
     return ContactStep(summed_stats(comm, counters, extra), memory, walls_after)
 
 
@@ -108,7 +110,7 @@ def summed_stats(comm, counters: np.ndarray, extra: dict) -> dict:
     total[SWEEPS] = counters[SWEEPS]
     summed = dict(zip(names, total[len(NAMES):]))
     stats = as_dict(total[:len(NAMES)], {**summed, "dense_steps": extra.get("dense_steps", 0)})
-    stats.update(owned=extra["owned"], ghosts=extra["ghosts"])
+    stats.update(owned=extra["owned"], ghosts=extra["ghosts"], exchanged_bytes=extra["exchanged_bytes"])
     return stats
 
 
@@ -125,8 +127,9 @@ def gathered_step(comm, state, local, halo, record, walls, dt, settings, memory,
     involved = involved[:n] & halo.owned
     # the memory of the contacts of the particles sent (those whose lower-id particle is owned here)
     held = np.isin(memory.first_id, local.id[involved])
-    parts = comm.allgather((particle_rows(local, involved),
-                            {name: values[held] for name, values in memory.to_arrays().items()}))
+    sent = (particle_rows(local, involved), {name: values[held] for name, values in memory.to_arrays().items()})
+    halo.sent += (comm.size - 1) * sum(values.nbytes for part in sent for values in part.values())
+    parts = comm.allgather(sent)
     cluster = particles_of({name: np.concatenate([part[0][name] for part in parts]) for name in parts[0][0]})
     joined = {name: np.concatenate([part[1][name] for part in parts]) for name in parts[0][1]}
     order = np.argsort(ContactMemory.key_of(joined["first_id"], joined["second_id"]), kind="stable")
@@ -188,27 +191,28 @@ def dense_blocks(halo: Halo, bodies, record, rows, warm_n, warm_t, settings, dt,
     tol = SWEEP_TOL * settings.rest_speed if settings.rest_speed > 0 else 1e-12 * scale
     remembered, driven, tol, energy = reduced(comm, max_of=(float(lam_n.any()), float(driven.any()), tol),
                                               sum_of=(impulses.kinetic_energy(owned_members, inv_m, inv_i, v, w),))
+    # a particle in the contacts of several ranks: its mass split among them (Tonge et al. 2012)
+    in_contact = np.zeros(n, bool)
+    in_contact[members] = True
+    split = np.append(halo.holders(in_contact), 1.0)
+    light_m, light_i = inv_m * split, inv_i * split
     reference = (v.copy(), w.copy())
     if remembered:
-        impulses.warm_start(rows, first, second, normal, r_first, r_second, record.friction, inv_m, inv_i, v, w,
+        impulses.warm_start(rows, first, second, normal, r_first, r_second, record.friction, light_m, light_i, v, w,
                             lam_n, lam_t)
-        halo.merge(reference, v, w)
+        halo.merge(reference, v, w, split=split[:n])
     budget = settings.dense_sweeps if remembered else COLD_SWEEPS * settings.dense_sweeps
     contacts = (first, second, normal, r_first, r_second, record.wall_velocity)
-    sweeps = block_sweeps(halo, rows, contacts, target, record.friction, bodies, lam_n, lam_t, reference, budget, tol,
-                          kernels)
+    sweeps = block_sweeps(halo, rows, contacts, target, record.friction, (light_m, light_i, v, w), split[:n], lam_n,
+                          lam_t, reference, budget, tol, kernels)
     after = comm.allreduce(impulses.kinetic_energy(owned_members, inv_m, inv_i, v, w))
     if not driven and after > energy * (1 + ENERGY_TOL) + 1e-300:
-        # Newton's law over simultaneous contacts can make energy: solve inelastically instead
+        # Newton's law over simultaneous contacts, or the ranks' blocks, can make energy: every
+        # impulse scaled back (velocities and impulses alike) to the energy the bodies had
         counters[CLAMPS] += comm.rank == 0
-        v[:], w[:] = v0, w0
-        reference = (v.copy(), w.copy())
-        lam_n[:], lam_t[:] = 0.0, 0.0
-        target = -np.maximum(gap, 0.0) / dt
-        hit_time[:] = 0.0
-        sweeps += block_sweeps(halo, rows, contacts, target, record.friction, bodies, lam_n, lam_t, reference,
-                               COLD_SWEEPS * settings.dense_sweeps, tol, kernels)
-        limit_energy(halo, owned_members, bodies, v0, w0, energy)
+        s = limit_energy(halo, owned_members, bodies, v0, w0, energy)
+        lam_n *= s
+        lam_t *= s
     # each body's velocity changed at the impulse-weighted time of its contacts (dense.dense_step)
     strength = np.sqrt(lam_n[rows] ** 2 + (lam_t[rows] ** 2).sum(1))
     weight = np.bincount(first[rows], strength, n + 1) + np.bincount(second[rows], strength, n + 1)
@@ -233,15 +237,16 @@ def dense_blocks(halo: Halo, bodies, record, rows, warm_n, warm_t, settings, dt,
     return lam_n, lam_t
 
 
-def block_sweeps(halo: Halo, rows, contacts, target, mu, bodies, lam_n, lam_t, reference, budget: int, tol: float,
-                 kernels) -> int:
+def block_sweeps(halo: Halo, rows, contacts, target, mu, bodies, split, lam_n, lam_t, reference, budget: int,
+                 tol: float, kernels) -> int:
     """Collective. Sweeps of this rank's contacts ``rows``, the shadow copies merged after each, until
     no owned body's contact-point velocity changed by more than ``tol`` (m/s) in a sweep, on any
-    rank, or ``budget`` sweeps; returns the sweeps made (the same on every rank). A sweep's test is
+    rank, or ``budget`` sweeps; returns the sweeps made (the same on every rank). ``bodies``:
+    (1/m, 1/I, v, ω) with the masses split among the ranks sharing a particle (``split``, per local row). A sweep's test is
     reduced over the ranks while the next sweep runs (a nonblocking reduction, so no sync of its
     own): the sweeps stop one sweep after the one that converged."""
     first, second, normal, r_first, r_second, u_wall = contacts
-    v, w, inv_m, inv_i = bodies.v, bodies.w, bodies.inv_m, bodies.inv_i
+    inv_m, inv_i, v, w = bodies
     a, b = first[rows], second[rows]
     k_n = inv_m[a] + inv_m[b]
     k_t = k_n + inv_i[a] * r_first[rows] ** 2 + inv_i[b] * r_second[rows] ** 2
@@ -256,7 +261,7 @@ def block_sweeps(halo: Halo, rows, contacts, target, mu, bodies, lam_n, lam_t, r
         before_v, before_w = v[watched], w[watched]
         kernels.impulses.sweep_once(rows, inv_kn, inv_kt, first, second, normal, r_first, r_second, u_wall, target,
                                     mu, inv_m, inv_i, v, w, lam_n, lam_t)
-        halo.merge(reference, v, w)
+        halo.merge(reference, v, w, split=split)
         done += 1
         if pending is not None:   # the test of the sweep before this one, reduced meanwhile
             pending.Wait()
@@ -270,10 +275,10 @@ def block_sweeps(halo: Halo, rows, contacts, target, mu, bodies, lam_n, lam_t, r
     return done
 
 
-def limit_energy(halo: Halo, owned_members, bodies, v0, w0, energy: float) -> None:
+def limit_energy(halo: Halo, owned_members, bodies, v0, w0, energy: float) -> float:
     """Collective. ``impulses.limit_energy`` over the ranks: the velocity changes since (v0, w0)
     scaled back by the largest s in [0, 1] that keeps the kinetic energy of the owned bodies, summed
-    over ranks, at ``energy``."""
+    over ranks, at ``energy``; returns s."""
     inv_m, inv_i, v, w = bodies.inv_m, bodies.inv_i, bodies.v, bodies.w
     k = owned_members[inv_m[owned_members] > 0]
     m, i = 1.0 / inv_m[k], 1.0 / inv_i[k]
@@ -284,10 +289,11 @@ def limit_energy(halo: Halo, owned_members, bodies, v0, w0, energy: float) -> No
     halo.comm.Allreduce(MPI.IN_PLACE, terms, op=MPI.SUM)
     a, b, after = terms
     if after <= energy * (1 + ENERGY_TOL) + 1e-300:
-        return
+        return 1.0
     s = min(1.0, -a / b) if b > 0 and a < 0 else 0.0
     v[:] = v0 + s * (v - v0)
     w[:] = w0 + s * (w - w0)
+    return s
 
 
 def deposit(halo: Halo, bodies, record, rows, r_first, deposition, kernels, counters) -> None:
