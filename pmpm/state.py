@@ -42,8 +42,9 @@ class RunState:
     pressure_iterations : pressure KSP iterations summed over the run
     body_forces : (n_bodies, 6) the fluid's force (N) and torque (N m) on each [[body]] over the last
         step, or None
-    ranks_seen : the largest number of owned and of ghost particles a rank held in a step
-        (``owned``, ``ghosts``), where particles are owned by ranks
+    ranks_seen : where particles are owned by ranks, the largest number of owned and of ghost
+        particles this rank held in a contact step and the most bytes it sent in one (``owned``,
+        ``ghosts``, ``exchanged_bytes``; reduced over ranks for summary.json)
     """
 
     time: float

@@ -192,13 +192,16 @@ HOPPER_COUNT, HOPPER_TIME = 1500, 0.5
 
 
 def test_small_hopper_on_one_and_two_ranks(tmp_path):
-    """A hopper of 1500 spheres discharging for 0.5 s from a loose fill, on 1 and 2 ranks (the
-    discharged count within 2 %, every id once: a permutation of those that stay, none lost or
-    duplicated, and no overlap beyond the documented bound, 0.15 d)."""
+    """A hopper of 1500 spheres discharging for 0.5 s from a loose fill, on 1 and 2 ranks: every id
+    at most once (those that stay are a permutation of the ids that did not leave: none lost or
+    duplicated), no overlap beyond the documented bound (0.15 d), and the discharged count within
+    2 % of the 1-rank band. The band: the 1-rank run and one whose restitution differs by 1e-10 (a
+    granular flow is chaotic: that alone moves the count by ~2 % here, docs/collisions.md)."""
     import sys
     sys.path.insert(0, str(__import__("pathlib").Path(__file__).resolve().parents[1] / "tools"))
     from hopper_mesh import hopper_mesh, particles as lattice
     import meshio
+    from scipy.spatial import cKDTree
     meshio.write(str(tmp_path / "hopper.msh"), hopper_mesh(), file_format="gmsh22", binary=False)
     xyz = lattice(HOPPER_COUNT)
     table = np.column_stack([xyz, np.full(len(xyz), 0.002), np.full(len(xyz), 2500.0)])
@@ -220,22 +223,22 @@ restitution = 0.9
 friction = 0.3
 """)
     finals = {}
-    for ranks in (1, 2):
-        out = tmp_path / f"out{ranks}"
-        result = subprocess.run(mpirun_command(ranks) + ["-m", "pmpm", str(tmp_path), "--quiet", "--output", str(out)],
+    for label, ranks, restitution in (("one", 1, "0.9"), ("perturbed", 1, "0.9000000001"), ("two", 2, "0.9")):
+        out = tmp_path / label
+        result = subprocess.run(mpirun_command(ranks) + ["-m", "pmpm", str(tmp_path), "--quiet", "--output", str(out),
+                                                         "--set", f"collisions.restitution={restitution}"],
                                 capture_output=True, text=True, timeout=900, env=subprocess_env())
         assert result.returncode == 0, result.stderr[-2000:]
         table = np.loadtxt(out / "particles.csv", delimiter=",", skiprows=1)
-        finals[ranks] = table[table[:, 0] == table[:, 0].max()]
-    one, two = finals[1], finals[2]
-    discharged = {ranks: HOPPER_COUNT - len(final) for ranks, final in finals.items()}
-    assert discharged[1] > 200
-    assert abs(discharged[2] - discharged[1]) <= 0.02 * discharged[1]
-    for final in (one, two):
+        finals[label] = table[table[:, 0] == table[:, 0].max()]
+    discharged = {label: HOPPER_COUNT - len(final) for label, final in finals.items()}
+    low, high = min(discharged["one"], discharged["perturbed"]), max(discharged["one"], discharged["perturbed"])
+    assert low > 500
+    assert 0.98 * low <= discharged["two"] <= 1.02 * high, discharged
+    for final in finals.values():
         ids = final[:, 1].astype(int)
         assert len(np.unique(ids)) == len(ids) and ids.min() >= 0 and ids.max() < HOPPER_COUNT
         x = final[:, 2:5]
-        from scipy.spatial import cKDTree
         pairs = cKDTree(x).query_pairs(0.004, output_type="ndarray")
         gap = np.linalg.norm(x[pairs[:, 0]] - x[pairs[:, 1]], axis=1) - 0.004
         assert gap.min(initial=0.0) > -0.15 * 0.004

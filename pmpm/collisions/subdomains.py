@@ -9,12 +9,14 @@ can act, counted once each, by the owner of their lower-id particle). Then:
 - a **dense step** (a bed, a hopper) is a block Gauss–Seidel that conforms to the subdomains
   (Preclik & Rüde 2015): a contact is solved by the rank that owns its lower-id particle (walls:
   the particle's owner), each rank sweeps its contacts in the record's order, and after each
-  sweep the velocity changes that a rank made to its shadow (ghost) copies are added to their
-  owners and the owners' velocities return to every shadow (``Halo.merge``: one neighbour
-  exchange each way per sweep; Jacobi between subdomains, Gauss–Seidel inside). The stopping
-  test, the energy check and the deposition flags meet in reductions, so every rank makes the
-  same number of sweeps. Overlaps are removed per rank over its contacts (positions, each rank
-  keeping its owned particles').
+  sweep every rank holding a particle sends the others the change its sweep made to the
+  particle's velocities, and all set the same merged value (``Halo.merge``: one message each way
+  per pair of ranks sharing particles, per sweep; Jacobi between subdomains, Gauss–Seidel inside).
+  A particle in the contacts of k ranks has 1/k of its mass on each and the changes are averaged
+  (mass splitting, Tonge et al. 2012), so the merged velocity is v0 + Σ J / m over every rank's
+  impulses. The stopping test, the energy check and the deposition flags meet in reductions, so
+  every rank makes the same number of sweeps. Overlaps are removed per rank over its contacts
+  (positions, each rank keeping its owned particles').
 - an **event step** (fewer contacts than ``dense_contacts`` over all ranks) gathers the
   particles of every contact, from their owners, on every rank, which all take the same
   time-ordered step (``advance_with_collisions``, with the global search speed and particle
