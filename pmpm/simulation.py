@@ -18,9 +18,8 @@ from mpi4py import MPI
 from . import checkpoint, checks, io, reporting
 from .bodies import Body, build_bodies
 from .case import Case, case_path, load_case, suggest
-from .collisions import (CollisionSettings, ContactMemory, advance_with_collisions, build_walls,
-                         check_initial_particles, closest_points_on_triangles, collision_settings)
-from .collisions.walls import particles_bounce
+from .collisions import (CollisionSettings, advance_with_collisions, build_walls, check_initial_particles,
+                         collision_settings)
 from .collisions.subdomains import advance_owned
 from .coupling import CouplingMemory, External, PatchForcing, PenaltyForcing, build_forcing, volume_fraction
 from .coupling.bodies import BodyForcing
@@ -30,7 +29,8 @@ from .forces import field_forces_of_case, gravity_buoyancy
 from .injection import Injector, NewParticles, build_injectors, initial_particles
 from .placement import place_releases
 from .mesh import Mesh
-from .ownership import IMBALANCE, bisect, exchange_groups, particle_rows, particles_of
+from .migration import exit_triangles, migrate_particles
+from .ownership import bisect
 from .parallel import allreduce_sum, print0
 from .particles import FIXED, ParticleState, accelerate
 from .reporting import StageTimes
@@ -102,16 +102,6 @@ def build_model(comm, case: Case, mesh: Mesh) -> Model:
                  collision_settings(case) if case.collisions else None, bodies, body_forcing, exits)
 
 
-def exit_triangles(case: Case, mesh: Mesh) -> tuple:
-    """Collective. The boundary triangles particles can leave the domain through, the same on every
-    rank: those that are not walls to them (``particles_bounce``), every one without [collisions];
-    as (a, b, c) vertices (m, 3) each and the unit normal into the domain (m, 3)."""
-    names = [name for name in mesh.boundary_names
-             if not case.collisions or not particles_bounce(case.boundaries.get(name))]
-    triangles, _, normal = mesh.boundary_triangles(names)
-    return triangles[:, 0], triangles[:, 1], triangles[:, 2], normal
-
-
 def initial_state(model: Model) -> RunState:
     """Collective. The state at t = 0: fluid at rest, the case's particles (checked: inside the
     domain, not overlapping each other or a wall)."""
@@ -172,7 +162,8 @@ def advance(model: Model, state: RunState, dt: float, times: StageTimes) -> RunS
         state = move_particles(model, state, force, torque, dt)
     # 8. particles that left the domain are removed; particles whose centre changed rank migrate
     with times.stage("owners"):
-        state = remove_outside(model, state) if state.partition is None else migrate_particles(model, state, dt)
+        state = remove_outside(model, state) if state.partition is None else \
+            migrate_particles(model.comm, model.exits, state, dt)
     # 1 (of the next step). particles released within this step, where they are at its end
     state = replace(state, fresh_from=state.next_id)
     if model.injectors:
@@ -338,82 +329,6 @@ def remove_outside(model: Model, state: RunState) -> RunState:
         return state
     return replace(state, particles=state.particles.without(outside), removed=state.removed + int(outside.sum()),
                    hydro_force=state.hydro_force[~outside], hydro_torque=state.hydro_torque[~outside])
-
-
-def crossed_exits(model: Model, particles: ParticleState, dt: float) -> np.ndarray:
-    """Local. (n,) bool: the particles whose centre crossed an exit triangle (``exit_triangles``) in
-    the last step of ``dt``: those within their travel of an exit, on its far side from the domain.
-
-    Where ranks own particles, this replaces the point location in every rank's cells (a particle's
-    rank is not the rank of its cell): a particle inside the domain leaves only through a boundary
-    that is not a wall to it, and the one it just crossed is within its last step's travel."""
-    a, b, c, normal = model.exits
-    x = particles.x
-    outside = np.zeros(len(x), bool)
-    if len(a) == 0 or len(x) == 0:
-        return outside
-    travel = 1.5 * np.linalg.norm(particles.v, axis=1) * dt + 1e-9 * particles.radius
-    corners = np.concatenate([a, b, c])
-    low, high = corners.min(axis=0), corners.max(axis=0)
-    near = np.flatnonzero(((x >= low - travel[:, None]) & (x <= high + travel[:, None])).all(axis=1))
-    if len(near) == 0:
-        return outside
-    p = np.repeat(near, len(a))
-    k = np.tile(np.arange(len(a)), len(near))
-    q, _ = closest_points_on_triangles(x[p], a[k], b[k], c[k])
-    distance = np.linalg.norm(x[p] - q, axis=1)
-    order = np.lexsort((distance, p))
-    first = np.ones(len(order), bool)
-    first[1:] = p[order][1:] != p[order][:-1]
-    closest = order[first]                        # each near particle's closest exit triangle
-    beyond = np.einsum("ij,ij->i", x[p[closest]] - q[closest], normal[k[closest]]) < 0
-    outside[p[closest][beyond & (distance[closest] <= travel[p[closest]])]] = True
-    return outside
-
-
-def migrate_particles(model: Model, state: RunState, dt: float) -> RunState:
-    """Collective. Where ranks own particles, stage 8 in one gather of counts and (when a particle
-    changed rank) one exchange: the particles that crossed an exit are removed (``crossed_exits``),
-    the ones whose centre entered another rank's box go to it, with their last hydrodynamic force
-    and the contact memory of the contacts whose lower-id particle they are; when a rank owns more
-    than ``ownership.IMBALANCE`` × the mean, the boxes are bisected again first. A particle whose
-    state is not finite stops the run on every rank (NumericalError)."""
-    comm, partition = model.comm, state.partition
-    outside = crossed_exits(model, state.particles, dt)
-    particles = state.particles.without(outside)
-    force, torque = state.hydro_force[~outside], state.hydro_torque[~outside]
-    bad = ~np.isfinite(particles.x).all(axis=1) | ~np.isfinite(particles.v).all(axis=1)
-    owner = partition.owner_of(particles.x)
-    counts = np.array(comm.allgather((len(particles), int((owner != comm.rank).sum()), int(outside.sum()),
-                                      int(particles.id[np.argmax(bad)]) if bad.any() else -1)))
-    if (counts[:, 3] >= 0).any():
-        pid = int(counts[np.argmax(counts[:, 3] >= 0), 3])
-        raise NumericalError(f"step {state.step + 1}, t = {state.time + dt:.6g} s: particle {pid} has a non-finite "
-                             "position or velocity; reduce [run] dt")
-    state = replace(state, removed=state.removed + int(counts[:, 2].sum()))
-    if counts[:, 0].max() > IMBALANCE * max(counts[:, 0].mean(), 1.0) and counts[:, 0].max() >= 64:
-        partition = bisect(comm, particles.x)
-        owner = partition.owner_of(particles.x)
-    elif counts[:, 1].sum() == 0:
-        return replace(state, particles=particles, hydro_force=force, hydro_torque=torque)
-    contacts = state.contacts
-    groups = [(owner, {**particle_rows(particles), "hydro_force": force, "hydro_torque": torque})]
-    if contacts is not None:   # the memory goes where the contact's lower-id particle goes
-        at = np.searchsorted(particles.id, contacts.first_id)
-        held = at < len(particles)
-        held[held] = particles.id[at[held]] == contacts.first_id[held]
-        groups.append((np.where(held, owner[np.minimum(at, len(particles) - 1)] if len(particles) else -1, -1),
-                       contacts.to_arrays()))
-    moved, *kept = exchange_groups(comm, groups)
-    order = np.argsort(moved["id"], kind="stable")
-    particles = particles_of(moved)
-    state = replace(state, particles=particles, hydro_force=moved["hydro_force"][order],
-                    hydro_torque=moved["hydro_torque"][order], partition=partition)
-    if contacts is not None:
-        kept = kept[0]
-        order = np.argsort(ContactMemory.key_of(kept["first_id"], kept["second_id"]), kind="stable")
-        state = replace(state, contacts=ContactMemory.from_arrays({k: v[order] for k, v in kept.items()}))
-    return state
 
 
 def check_finite(particles: ParticleState, step: int, time: float) -> None:
