@@ -182,7 +182,8 @@ def restore(comm, data: dict, model, initial, path: Path):
     if initial.partition is not None:   # ranks own particles: the boxes written, on as many ranks
         stored = Partition.from_array(data["ownership"]["partition"]) if "ownership" in data else None
         if stored is None or len(stored.lower) != comm.size:
-            stored = bisect(comm, state.particles.x if comm.rank == 0 else np.zeros((0, 3)))
+            x = state.particles.x if comm.rank == 0 else np.zeros((0, 3))
+            stored = bisect(comm, x, (mesh.lower, mesh.upper))
         state = state.owned_by(comm.rank, stored)
     return state
 

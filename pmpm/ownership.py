@@ -60,10 +60,12 @@ class Partition:
         return cls(np.array(array[0], float), np.array(array[1], float))
 
 
-def bisect(comm, x: np.ndarray) -> Partition:
+def bisect(comm, x: np.ndarray, domain: tuple | None = None) -> Partition:
     """Collective. Boxes that share the particles (centres ``x``, this rank's, (n, 3)) evenly among
     the ranks: each box with several ranks is cut across the longest extent of its particles, at
-    the share of its ranks on the lower side, level by level (one set of reductions per level)."""
+    the share of its ranks on the lower side, level by level (one set of reductions per level). A
+    box without particles is cut across the middle of its part of ``domain`` ((lower, upper) (3,)
+    each, m; the domain's bounding box), or at 0 without one."""
     ranks = comm.size
     nodes = [(np.full(3, -np.inf), np.full(3, np.inf), 0, ranks)]   # (lower, upper, first rank, ranks)
     while any(count > 1 for *_, count in nodes):
@@ -82,6 +84,9 @@ def bisect(comm, x: np.ndarray) -> Partition:
         low, high = bounds[:, :3], -bounds[:, 3:]
         empty = ~np.isfinite(low).all(axis=1)
         low[empty], high[empty] = 0.0, 0.0
+        if domain is not None:   # (the domain's part in the box)
+            low[empty] = np.clip(domain[0], lower[empty], upper[empty])
+            high[empty] = np.clip(domain[1], lower[empty], upper[empty])
         axis = np.argmax(high - low, axis=1)
         share = np.array([(nodes[k][3] // 2) / nodes[k][3] for k in split])
         coordinate = np.where(held, x[np.arange(len(x)), axis[np.maximum(node, 0)]] if len(x) else 0.0, 0.0)
@@ -95,7 +100,7 @@ def bisect(comm, x: np.ndarray) -> Partition:
             s = split.index(k)
             left = count // 2
             upper_left, lower_right = hi.copy(), lo.copy()
-            upper_left[axis[s]] = lower_right[axis[s]] = cut[s]
+            upper_left[axis[s]] = lower_right[axis[s]] = np.clip(cut[s], lo[axis[s]], hi[axis[s]])
             children += [(lo, upper_left, first, left), (lower_right, hi, first + left, count - left)]
         nodes = children
     nodes.sort(key=lambda node: node[2])

@@ -59,7 +59,7 @@ def describe(model, state, setup_seconds: float) -> str:
         f"pmpm: case {case.path}",
         f"  models:    {', '.join(case.models()) or 'none'}",
         f"  mesh:      {mesh.describe()}",
-        f"  particles: {len(state.particles)} at start, {len(model.injectors)} injection(s)",
+        f"  particles: {state.n_global_particles} at start, {len(model.injectors)} injection(s)",
         f"  ranks:     {comm.size}",
         f"  time:      0 → {run.end_time:g} s, " + (f"dt = {run.dt:g} s ({steps} steps)" if not run.adaptive_cfl else
                                                    f"dt ≤ {run.dt:g} s adapted to CFL {run.adaptive_cfl:g}")
@@ -146,7 +146,7 @@ def warn_once(comm, message: str) -> None:
 def summary(model, state, status: str, seconds: dict) -> dict:
     """Collective. The contents of summary.json."""
     owned = state.partition is not None
-    count = model.comm.allreduce(len(state.particles)) if owned else len(state.particles)
+    count = state.n_global_particles
     return {
         "case": str(model.case.path), "status": status, "ranks": model.comm.size,
         "cells": model.mesh.n_global_cells, "particles": count, "particles_removed": state.removed,

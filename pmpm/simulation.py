@@ -30,7 +30,7 @@ from .injection import Injector, NewParticles, build_injectors, initial_particle
 from .placement import place_releases
 from .mesh import Mesh
 from .migration import exit_triangles, migrate_particles
-from .ownership import bisect
+from .ownership import bisect, gather
 from .parallel import allreduce_sum, print0
 from .particles import FIXED, ParticleState, accelerate
 from .reporting import StageTimes
@@ -121,8 +121,9 @@ def distribute(model: Model, state: RunState) -> RunState:
     every rank read whole, as each rank's own, in boxes bisected over them. Otherwise the state."""
     if not model.owns_particles:
         return state
-    comm = model.comm
-    return state.owned_by(comm.rank, bisect(comm, state.particles.x if comm.rank == 0 else np.zeros((0, 3))))
+    comm, mesh = model.comm, model.mesh
+    x = state.particles.x if comm.rank == 0 else np.zeros((0, 3))
+    return state.owned_by(comm.rank, bisect(comm, x, (mesh.lower, mesh.upper)))
 
 
 def add_particles(model: Model, state: RunState, new: NewParticles, validate: bool = False) -> RunState:
@@ -362,7 +363,11 @@ class Simulation:
     flow = property(lambda self: self.model.flow)
     forcing = property(lambda self: self.model.forcing)
     time = property(lambda self: self.state.time)
-    particles = property(lambda self: self.state.particles)
+    @property
+    def particles(self) -> ParticleState:
+        """Every particle (collective where ranks own particles: gathered, in id order)."""
+        return gather(self.comm, self.state.particles) if self.state.partition is not None else self.state.particles
+
     fluid_state = property(lambda self: self.state.fluid)
     hydro_force = property(lambda self: self.state.hydro_force)
     hydro_torque = property(lambda self: self.state.hydro_torque)
@@ -405,9 +410,7 @@ class Simulation:
                         checkpoint_time = time
                         while next_checkpoint <= time * (1 + 1e-9):
                             next_checkpoint += every
-                    count = self.state.next_id - self.state.removed if self.state.partition is not None else \
-                        len(self.state.particles)   # (ranks own particles: every rank knows the total so)
-                    progress.update(self.state.step, time, f"  particles {count}")
+                    progress.update(self.state.step, time, f"  particles {self.state.n_global_particles}")
                     signal_number = stops.agreed(self.comm)
                     if signal_number:
                         stop = Stopped(stop_message(self.state, signal_number, output), signal_number)

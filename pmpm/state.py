@@ -69,6 +69,11 @@ class RunState:
     partition: Partition | None = None
     ranks_seen: dict = field(default_factory=dict)
 
+    @property
+    def n_global_particles(self) -> int:
+        """The particles of the run on every rank together (ids are given once, removals counted)."""
+        return self.next_id - self.removed
+
     def owned_by(self, rank: int, partition: Partition) -> "RunState":
         """This state, whose particles every rank holds whole (the case's, a checkpoint's), as rank
         ``rank``'s share in the boxes of ``partition``: its particles and the contact memory of the
