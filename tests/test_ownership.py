@@ -198,30 +198,17 @@ def test_small_hopper_on_one_and_two_ranks(tmp_path):
     2 % of the 1-rank band. The band: the 1-rank run and one whose restitution differs by 1e-10 (a
     granular flow is chaotic: that alone moves the count by ~2 % here, docs/collisions.md)."""
     import sys
-    sys.path.insert(0, str(__import__("pathlib").Path(__file__).resolve().parents[1] / "tools"))
-    from hopper_mesh import hopper_mesh, particles as lattice
+    root = __import__("pathlib").Path(__file__).resolve().parents[1]
+    sys.path.insert(0, str(root / "bench"))
     import meshio
+    from hopper import CASE, hopper_mesh, particles as lattice
     from scipy.spatial import cKDTree
     meshio.write(str(tmp_path / "hopper.msh"), hopper_mesh(), file_format="gmsh22", binary=False)
     xyz = lattice(HOPPER_COUNT)
     table = np.column_stack([xyz, np.full(len(xyz), 0.002), np.full(len(xyz), 2500.0)])
     np.savetxt(tmp_path / "p.txt", table, header="x y z radius density", comments="")
-    (tmp_path / "case.toml").write_text(f"""
-[run]
-end_time = {HOPPER_TIME}
-dt = 2e-3
-output_every = {HOPPER_TIME}
-gravity = [0.0, 0.0, -9.81]
-[mesh]
-file = "hopper.msh"
-[boundary.orifice]
-type = "outlet"
-[particles]
-file = "p.txt"
-[collisions]
-restitution = 0.9
-friction = 0.3
-""")
+    (tmp_path / "case.toml").write_text(CASE.format(end_time=HOPPER_TIME, dt=2e-3, output_every=HOPPER_TIME,
+                                                    checkpoint="", orifice="outlet", particles="p.txt"))
     finals = {}
     for label, ranks, restitution in (("one", 1, "0.9"), ("perturbed", 1, "0.9000000001"), ("two", 2, "0.9")):
         out = tmp_path / label

@@ -34,11 +34,11 @@ from mpi4py import MPI
 from . import jit
 from .record import ContactMemory
 from .search import find_contacts, wall_arrays
-from .settings import COLD_SWEEPS, CONTACT_TOL, ENERGY_TOL, SEARCH_SLACK, SWEEP_TOL, CollisionSettings
+from .dense import finish, targets
+from .settings import COLD_SWEEPS, ENERGY_TOL, SEARCH_SLACK, SWEEP_TOL, CollisionSettings
 from .solver import Bodies, ContactStep, advance_with_collisions, remove_overlaps
-from .stats import CLAMPS, DEPOSITED, PAIR, RESTING, SWEEPS, WALL, EXTRA, NAMES, as_dict, new_counters
+from .stats import CLAMPS, DEPOSITED, EXTRA, NAMES, SWEEPS, as_dict, new_counters
 from .walls import Walls
-from ..arrays import cross
 from ..ownership import Halo, Partition, particle_rows, particles_of
 from ..particles import FREE, PRESCRIBED, ParticleState
 
@@ -171,14 +171,8 @@ def dense_blocks(halo: Halo, bodies, record, rows, warm_n, warm_t, settings, dt,
     if deposition.any():   # (the same on every rank)
         deposit(halo, bodies, record, rows, r_first, deposition, kernels, counters)
     v, w, inv_m, inv_i = bodies.v, bodies.w, bodies.inv_m, bodies.inv_i
-    normal, gap = record.normal, record.gap
-    u = (v[first] - v[second] - record.wall_velocity
-         - cross(r_first[:, None] * w[first] + r_second[:, None] * w[second], normal))
-    closing = -(u * normal).sum(1)
-    touching = gap <= CONTACT_TOL * r_first
-    hits = (closing > settings.rest_speed) & (touching | (record.time <= dt))
-    target = np.where(hits, record.restitution * closing, -np.maximum(gap, 0.0) / dt)
-    hit_time = np.where(hits & ~touching & np.isfinite(record.time), record.time, 0.0)
+    normal = record.normal
+    closing, touching, hits, target, hit_time = targets(bodies, record, r_first, r_second, settings, dt)
     lam_n, lam_t = np.zeros(m), np.zeros((m, 3))
     lam_n[rows], lam_t[rows] = warm_n[rows], warm_t[rows]
     members = np.unique(np.concatenate([first[rows], second[rows]]))
@@ -215,27 +209,9 @@ def dense_blocks(halo: Halo, bodies, record, rows, warm_n, warm_t, settings, dt,
         s = limit_energy(halo, owned_members, bodies, v0, w0, energy)
         lam_n *= s
         lam_t *= s
-    # each body's velocity changed at the impulse-weighted time of its contacts (dense.dense_step)
-    strength = np.sqrt(lam_n[rows] ** 2 + (lam_t[rows] ** 2).sum(1))
-    weight = np.bincount(first[rows], strength, n + 1) + np.bincount(second[rows], strength, n + 1)
-    late = (np.bincount(first[rows], strength * hit_time[rows], n + 1)
-            + np.bincount(second[rows], strength * hit_time[rows], n + 1))
-    halo.to_owners(weight[:n], late[:n])
-    changed_at = np.divide(late, weight, out=np.zeros(n + 1), where=weight > 0)
-    displacement = -(v - v0) * changed_at[:, None]
-    size = np.sqrt((lam_t * lam_t).sum(1))
-    sticking = touching & (lam_n > 0) & (size < record.friction * lam_n * (1 - 1e-9))
-    rolling = rows[wall[rows] & (record.rolling_friction[rows] > 0) & sticking[rows]]
-    impulses.roll_resistance(rolling, first, normal, record.wall_velocity, lam_n, record.rolling_friction, inv_m,
-                             bodies.radius, v, w)
-    bodies.x += v * dt + displacement
-    active = rows[lam_n[rows] > 0]
-    impact = hits[active]
-    counters[PAIR] += int((impact & ~wall[active]).sum())
-    counters[WALL] += int((impact & wall[active]).sum())
-    counters[RESTING] += int((~impact).sum())
-    counters[SWEEPS] += sweeps
-    extra.update(dense_steps=1, dense_contacts=len(rows), contacts=len(rows))
+    finish(bodies, record, rows, lam_n, lam_t, v0, touching, hits, hit_time, dt, sweeps, counters, extra,
+           to_owners=halo.to_owners)
+    extra["contacts"] = len(rows)
     return lam_n, lam_t
 
 
