@@ -231,10 +231,10 @@ def big_bed_owned(n: int) -> None:
         if step >= 20:
             seconds += elapsed
             timed += 1
-            sent += comm.allreduce(result.stats["exchanged_bytes"] / max(len(state), 1), op=MPI.MAX)
+            sent += comm.allreduce(result.stats.get("exchanged_bytes", 0) / max(len(state), 1), op=MPI.MAX)
             clamps += result.stats["energy_clamps"]
-            ghosts = max(ghosts, comm.allreduce(result.stats["ghosts"], op=MPI.MAX))
-            owned = max(owned, comm.allreduce(result.stats["owned"], op=MPI.MAX))
+            ghosts = max(ghosts, comm.allreduce(result.stats.get("ghosts", 0), op=MPI.MAX))
+            owned = max(owned, comm.allreduce(result.stats.get("owned", len(state)), op=MPI.MAX))
             contacts = result.stats["dense_contacts"]
     state_bytes = sum(getattr(state, f).nbytes for f in ("id", "x", "v", "omega", "radius", "density", "motion",
                                                          "deposited"))

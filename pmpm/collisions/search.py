@@ -43,11 +43,11 @@ def candidate_pairs(x: np.ndarray, radius: np.ndarray, reach: float, cell_list,
 
 def find_contacts(bodies, walls: Walls | None, dt: float, reach: float, restitution: float, friction: float,
                   kernels, around: np.ndarray | None = None, dense_contacts: int = 0, owned: np.ndarray | None = None,
-                  comm=None) -> tuple[ContactRecord, bool]:
-    """The step's contacts (see the module's docstring), and whether the step is dense: at least
+                  comm=None) -> tuple[ContactRecord, bool, int]:
+    """The step's contacts (see the module's docstring), whether the step is dense: at least
     ``dense_contacts`` (> 0) of them can act (touching, or closing within ``dt`` at the relative
-    speed of the centres); a dense step's record holds only those. With ``around`` (particle
-    indices), only the contacts of those particles.
+    speed of the centres), and how many can act; a dense step's record holds only those. With
+    ``around`` (particle indices), only the contacts of those particles.
 
     Parameters
     ----------
@@ -97,4 +97,4 @@ def find_contacts(bodies, walls: Walls | None, dt: float, reach: float, restitut
         parts.append(ContactRecord(p, np.full(len(p), n), tri, normal[take], gap[take], face[take], time[take],
                                    u_wall[take], walls.restitution[tri], walls.friction[tri],
                                    walls.rolling_friction[tri]))
-    return ContactRecord.concatenate(parts), dense
+    return ContactRecord.concatenate(parts), dense, acting

@@ -71,10 +71,10 @@ def advance_owned(comm, partition: Partition, state: ParticleState, walls: Walls
     n = len(local)
     owned = np.append(halo.owned, False)              # the world row last
     bodies = Bodies.of(local)
-    record, dense = find_contacts(bodies, used_walls, dt, reach, settings.restitution, settings.friction, kernels,
-                                  dense_contacts=settings.dense_contacts, owned=halo.owned, comm=comm)
+    record, dense, acting = find_contacts(bodies, used_walls, dt, reach, settings.restitution, settings.friction,
+                                          kernels, dense_contacts=settings.dense_contacts, owned=halo.owned, comm=comm)
     extra = {"owned": len(state), "ghosts": n - len(state)}
-    if not dense:
+    if not dense or acting < settings.gather_contacts:
         step = gathered_step(comm, state, local, halo, record, walls, dt, settings, memory, speed, population)
         step.stats.update(extra, exchanged_bytes=halo.sent)   # (this rank's)
         return step
