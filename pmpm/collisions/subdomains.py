@@ -6,7 +6,8 @@ record is in the order of the 1-rank record restricted to it), keeping the conta
 one owned particle; the ranks agree on the step's search speed and on the regime (the contacts that
 can act, counted once each, by the owner of their lower-id particle). Then:
 
-- a **dense step** (a bed, a hopper) is a block Gauss–Seidel that conforms to the subdomains
+- a **dense step with many contacts** (a bed, a hopper: at least ``gather_contacts`` that can
+  act, over all ranks) is a block Gauss–Seidel that conforms to the subdomains
   (Preclik & Rüde 2015): a contact is solved by the rank that owns its lower-id particle (walls:
   the particle's owner), each rank sweeps its contacts in the record's order, and after each
   sweep every rank holding a particle sends the others the change its sweep made to the
@@ -17,12 +18,11 @@ can act, counted once each, by the owner of their lower-id particle). Then:
   impulses. The stopping test, the energy check and the deposition flags meet in reductions, so
   every rank makes the same number of sweeps. Overlaps are removed per rank over its contacts
   (positions, each rank keeping its owned particles').
-- an **event step** (fewer contacts than ``dense_contacts`` over all ranks) gathers the
-  particles of every contact, from their owners, on every rank, which all take the same
-  time-ordered step (``advance_with_collisions``, with the global search speed and particle
-  count) and keep their owned particles' results: such steps hold few contacts, and so the
-  sparse regime (impacts in time order, a pair or a column across the cut) gives the 1-rank
-  result.
+- any other step (an event step, or a dense one with fewer contacts) gathers the particles of
+  every contact, from their owners, on every rank, which all take the same step
+  (``advance_with_collisions``, with the global search speed and particle count) and keep their
+  owned particles' results: the gather is bounded by the contacts, and such steps (impacts in
+  time order, a pair or a column across the cut, a small pile) give the 1-rank result to the bit.
 
 On one rank this is ``advance_with_collisions`` itself.
 """
@@ -117,11 +117,11 @@ def summed_stats(comm, counters: np.ndarray, extra: dict) -> dict:
 
 
 # ----------------------------------------------------------------------------------------------
-# The sparse regime: the contacts' particles gathered, one time-ordered step on every rank
+# Few contacts: the contacts' particles gathered, one step on every rank
 # ----------------------------------------------------------------------------------------------
 def gathered_step(comm, state, local, halo, record, walls, dt, settings, memory, speed, population) -> ContactStep:
-    """Collective. The event step of the particles in contact (``record``'s), gathered from their
-    owners on every rank and moved there identically; the other owned particles fly freely."""
+    """Collective. The step of the particles in contact (``record``'s), gathered from their owners on
+    every rank and moved there identically; the other owned particles fly freely."""
     n = len(local)
     involved = np.zeros(n + 1, bool)
     involved[record.first] = True
