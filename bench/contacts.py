@@ -1,6 +1,7 @@
 """The contact engine's speed, printed in one run (docs/collisions.md):
 
-    OMP_NUM_THREADS=1 .venv/bin/python bench/contacts.py [--baseline DIR] [--skip-case] [--big N]
+    OMP_NUM_THREADS=1 .venv/bin/python bench/contacts.py [--baseline DIR] [--skip-case] [--big N] [--big-ranks R]
+                                                        [--big-only]
 
 1. ``cases/bouncing_balls`` as shipped, on 2 ranks, the whole command (``mpirun -n 2 python -m pmpm``,
    start-up and output included): wall seconds and the run's stage times. With ``--baseline DIR``
@@ -11,7 +12,10 @@
    settling (dense steps while it packs), each stepped by ``advance_with_collisions`` directly
    (no mesh, no flow): ms per step after the first steps, contacts and sweeps per step.
 3. A DEM bed of N spheres (default 100,000) settling on 1 rank: ms per step and the memory a step
-   allocates at its peak, per particle (tracemalloc: numpy's arrays included), short.
+   allocates at its peak, per particle (tracemalloc: numpy's arrays included), short; with
+   ``--big-ranks R``, the same bed on R ranks owning their particles (``mpirun -n R``,
+   ``collisions.subdomains.advance_owned``): ms per step (the slowest rank's), owned and ghost
+   particles per rank, and the bytes each rank sends per step, per owned particle.
 4. Rest and overlaps (``bench/contact_rest.py``, on this checkout and the baseline): a bed in
    equilibrium and a poured one (largest speed and spin about the vertical once settled), a
    sphere released into a wall (the speed it gets, the time the step takes).
@@ -156,9 +160,8 @@ def contacts_table() -> None:
               f"{1000 * ms / max(contacts, 1):10.2f}", flush=True)
 
 
-def big_bed(n: int) -> None:
-    """n spheres on a jittered lattice 1 % apart falling into a box: a bed settling, timed once the
-    layers have met (steps 20-39)."""
+def bed_lattice(n: int):
+    """n spheres on a jittered lattice 1 % apart over a box (state, walls, settings, dt)."""
     r, dt = 0.005, 1e-3
     k = int(np.ceil((n / 1.5) ** (1 / 3)))
     layers = int(np.ceil(n / k ** 2))
@@ -169,6 +172,13 @@ def big_bed(n: int) -> None:
     state = spheres(x, rng.normal(0, 0.01, x.shape), r)
     walls = box(2.02 * r * k + r, 10.0, restitution=0.5, friction=0.5)
     settings = CollisionSettings(restitution=0.5, friction=0.5, rest_speed=3 * G * dt)
+    return state, walls, settings, dt
+
+
+def big_bed(n: int) -> None:
+    """n spheres on a jittered lattice 1 % apart falling into a box: a bed settling, timed once the
+    layers have met (steps 20-39)."""
+    state, walls, settings, dt = bed_lattice(n)
     memory, seconds, timed = None, 0.0, 0
     state_bytes = sum(getattr(state, f).nbytes for f in ("id", "x", "v", "omega", "radius", "density", "motion",
                                                          "deposited"))
@@ -192,6 +202,50 @@ def big_bed(n: int) -> None:
           f"memory {sum(a.nbytes for a in memory.to_arrays().values()) / n:.0f} B/particle; {load()}", flush=True)
 
 
+def big_bed_owned(n: int) -> None:
+    """``big_bed`` on the ranks of this mpirun, each owning the particles in its box (bisected over
+    the particles; particles migrate after each step): the slowest rank's ms per step (steps
+    20-39), the largest owned and ghost counts, the bytes a rank sends per step per owned particle
+    (ghosts, merges per sweep; migration not included), the state's bytes per owned particle."""
+    from mpi4py import MPI
+    from pmpm.collisions.subdomains import advance_owned
+    from pmpm.ownership import bisect, exchange_rows, particle_rows, particles_of
+    from pmpm.state import RunState
+    comm = MPI.COMM_WORLD
+    state, walls, settings, dt = bed_lattice(n)
+    partition = bisect(comm, state.x if comm.rank == 0 else np.zeros((0, 3)))
+    state = RunState(0.0, 0, state, None, np.zeros((n, 3)), np.zeros((n, 3)), None, n, 0, ()).owned_by(
+        comm.rank, partition).particles
+    memory, seconds, timed, sent, ghosts, owned, contacts, clamps = None, 0.0, 0, 0.0, 0, 0, 0, 0
+    for step in range(40):
+        state.v[state.movable] += np.array([0, 0, -G]) * dt
+        comm.Barrier()
+        start = time.perf_counter()
+        result = advance_owned(comm, partition, state, walls, dt, settings, memory)
+        elapsed = comm.allreduce(time.perf_counter() - start, op=MPI.MAX)
+        memory, walls = result.memory, result.walls
+        owner = partition.owner_of(state.x)   # migration
+        moved = exchange_rows(comm, np.where(owner != comm.rank, owner, -1), particle_rows(state))
+        keep = particle_rows(state, owner == comm.rank)
+        state = particles_of({name: np.concatenate([keep[name], moved[name]]) for name in keep})
+        if step >= 20:
+            seconds += elapsed
+            timed += 1
+            sent += comm.allreduce(result.stats.get("exchanged_bytes", 0) / max(len(state), 1), op=MPI.MAX)
+            clamps += result.stats["energy_clamps"]
+            ghosts = max(ghosts, comm.allreduce(result.stats.get("ghosts", 0), op=MPI.MAX))
+            owned = max(owned, comm.allreduce(result.stats.get("owned", len(state)), op=MPI.MAX))
+            contacts = result.stats["dense_contacts"]
+    state_bytes = sum(getattr(state, f).nbytes for f in ("id", "x", "v", "omega", "radius", "density", "motion",
+                                                         "deposited"))
+    if comm.rank == 0:
+        print(f"DEM bed settling, {n} spheres, {comm.size} ranks: {1000 * seconds / timed:.0f} ms per step (steps "
+              f"20-39, slowest rank; {contacts} contacts solved over the ranks, {result.stats['sweeps']} sweeps, "
+              f"{clamps} energy clamps); per rank at most {owned} owned and {ghosts} ghosts; sent per step (mean, "
+              f"the largest rank's) {sent / timed:.0f} B per owned particle; "
+              f"state {state_bytes / max(len(state), 1):.0f} B/particle; {load()}", flush=True)
+
+
 def rest_and_overlaps(baseline: str | None) -> None:
     python = str(ROOT / ".venv" / "bin" / "python")
     for label, tree in ([("baseline " + baseline, Path(baseline))] if baseline else []) + [("this checkout", ROOT)]:
@@ -207,10 +261,18 @@ def main():
     options = sys.argv[1:]
     baseline = options[options.index("--baseline") + 1] if "--baseline" in options else None
     big = int(options[options.index("--big") + 1]) if "--big" in options else 100_000
+    if "--big-only" in options:   # (under mpirun, from --big-ranks)
+        big_bed_owned(big)
+        return
     if "--skip-case" not in options:
         bouncing_balls(baseline)
     contacts_table()
     big_bed(big)
+    if "--big-ranks" in options:
+        ranks = options[options.index("--big-ranks") + 1]
+        flags = ["--oversubscribe"] + (["--allow-run-as-root"] if os.geteuid() == 0 else [])
+        subprocess.run(["mpirun", *flags, "-n", ranks, sys.executable, str(Path(__file__).resolve()), "--big-only",
+                        "--big", str(big)], check=True, env=dict(os.environ, OMP_NUM_THREADS="1"))
     rest_and_overlaps(baseline)
 
 

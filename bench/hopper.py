@@ -11,11 +11,12 @@ SIM_TIME, on 1 and 2 ranks (wall time of the whole process, start-up included, a
 wall_s). Printed per rank count: wall time, particles discharged, the steady discharge rate (second
 half of SIM_TIME) against Beverloo's law (C = 0.58, k = 1.5, bulk density 0.6 ρ), collisions
 (impacts faster than the rest speed) per wall second, events and dense-step contacts and sweeps
-per step; then the LIGGGHTS peer (Hertz contacts at dt = 2e-5 s) run in the same invocation and
-the time-to-solution ratio pmpm/LIGGGHTS. Needs the peer's Debian package (liggghts), which the
-peer script installs with apt-get if missing. Every rank solves every contact (the dense steps'
-sweeps are sequential), so 2 ranks are no faster than 1 here; the fill compiles the contact
-kernels (numba) once, the timed runs load them from numba's cache.
+per step, and on several ranks the most particles a rank owned and held as ghosts and the most
+bytes it sent in a contact step; then the LIGGGHTS peer (Hertz contacts at dt = 2e-5 s) run in the
+same invocation and the time-to-solution ratio pmpm/LIGGGHTS. Needs the peer's Debian package
+(liggghts), which the peer script installs with apt-get if missing. On several ranks each rank
+owns the particles in its box (docs/collisions.md, "Particles owned by ranks"); the fill compiles
+the contact kernels (numba) once, the timed runs load them from numba's cache.
 """
 import json
 import os
@@ -136,8 +137,9 @@ def main():
               f"contacts_per_step={collisions.get('dense_contacts', 0) / steps:.0f} "
               f"resting_contacts_per_step={collisions.get('resting_contacts', 0) / steps:.0f} "
               f"sweeps_per_step={collisions.get('sweeps', 0) / steps:.1f} "
-              f"energy_clamps={collisions.get('energy_clamps', 0)} capped_steps={collisions.get('capped', 0)}",
-              flush=True)
+              f"energy_clamps={collisions.get('energy_clamps', 0)} capped_steps={collisions.get('capped', 0)}"
+              + "".join(f" {key}={value}" for key, value in summary.get("particles_per_rank", {}).items())
+              + f" load={os.getloadavg()[0]:.1f}", flush=True)
     if results.get(1) and results.get(2):
         print(f"pmpm speed-up 1 -> 2 ranks: {results[1] / results[2]:.2f}")
     if "--no-peer" in options:

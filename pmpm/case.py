@@ -125,6 +125,9 @@ SCHEMA: dict[str, tuple[Key, ...]] = {
         Key("restitution", "float", 0.9, "0..1"),
         Key("friction", "float", 0.3, ">=0", help="Coulomb friction coefficient"),
         Key("rolling_friction", "float", 0.0, ">=0", help="rolling resistance coefficient"),
+        Key("gather_contacts", "int", 4096, ">=0",
+            help="without a fluid, on several ranks: steps with fewer contacts over all ranks are solved as on "
+                 "one rank (the contacts' particles gathered), larger ones by block Gauss-Seidel over the ranks"),
     ),
     "field_forces": (
         Key("G_p", "float", 0.0, help="eq. 9: > 0 attracts, < 0 repels"),

@@ -7,7 +7,9 @@ independent of the rank count, so a run may restart on another number of ranks:
 - attributes: time, step, next particle id, particles removed (and through which boundary), pressure
   iterations, n_global_cells,
   each injection's next release;
-- ``particles/*``: the (replicated) particle arrays and their last hydrodynamic force and torque;
+- ``particles/*``: the particle arrays (gathered where ranks own particles), in id order, and their
+  last hydrodynamic force and torque; ``ownership/partition``: the ranks' boxes, where they own
+  particles (a restart on as many ranks takes them again);
 - ``coupling/*``, ``contacts/*``: the coupling's and the contact solver's memory, where the run has one;
 - ``walls/*``: the wall triangles as they are now (rigid walls move); ``collisions``: the run's counts;
 - ``fluid/velocity``, ``fluid/pressure``, ``fluid/volume_fraction``: cells in the serial order of
@@ -31,6 +33,7 @@ from .errors import CaseError
 from .fluid import FluidState
 from .io import SerialOrder, h5py
 from .mesh import match_rows
+from .ownership import Partition, bisect, gather
 from .parallel import agree, exscan_offset
 from .particles import ParticleState
 
@@ -59,12 +62,20 @@ def write(comm, folder: Path, mesh, state) -> None:
                        collisions=json.dumps(state.collision_totals), fresh_from=state.fresh_from,
                        injection_counts=json.dumps(state.injection_counts),
                        removed_through=json.dumps(state.removed_through))
-        groups = {"particles": {**{name: getattr(state.particles, name) for name in PARTICLE_FIELDS},
-                                "hydro_force": state.hydro_force, "hydro_torque": state.hydro_torque}}
+        particles, hydro_force, hydro_torque, contacts = state.particles, state.hydro_force, state.hydro_torque, \
+            state.contacts
+        if state.partition is not None:   # owned by ranks: gathered, in id order
+            particles = gather(comm, particles)
+            hydro_force = hydro_torque = np.zeros((len(particles), 3))   # no flow
+            contacts = gathered_memory(comm, contacts) if contacts is not None else None
+        groups = {"particles": {**{name: getattr(particles, name) for name in PARTICLE_FIELDS},
+                                "hydro_force": hydro_force, "hydro_torque": hydro_torque}}
+        if state.partition is not None:
+            groups["ownership"] = {"partition": state.partition.to_array()}
         if state.coupling is not None:
             groups["coupling"] = state.coupling.to_arrays()
-        if state.contacts is not None:
-            groups["contacts"] = state.contacts.to_arrays()
+        if contacts is not None:
+            groups["contacts"] = contacts.to_arrays()
         if state.body_forces is not None:
             groups["bodies"] = {"forces": state.body_forces}
         if state.walls is not None:
@@ -112,7 +123,7 @@ def read(comm, path: Path) -> dict:
     try:
         with h5py.File(path, "r") as f:
             data = {"attrs": dict(f.attrs)}
-            for group in ("particles", "coupling", "contacts", "walls", "bodies", "fluid"):
+            for group in ("particles", "coupling", "contacts", "walls", "bodies", "fluid", "ownership"):
                 if group in f:
                     data[group] = {k: f[f"{group}/{k}"][...] for k in f[group]}
             if "particles" not in data:
@@ -125,9 +136,19 @@ def read(comm, path: Path) -> dict:
     return data
 
 
+def gathered_memory(comm, memory: ContactMemory) -> ContactMemory:
+    """Collective. Every rank's contact memory, in key order."""
+    parts = comm.allgather(memory.to_arrays())
+    joined = ContactMemory.from_arrays({name: np.concatenate([part[name] for part in parts]) for name in parts[0]})
+    order = np.argsort(joined.keys, kind="stable")
+    return ContactMemory.from_arrays({name: values[order] for name, values in joined.to_arrays().items()})
+
+
 def restore(comm, data: dict, model, initial, path: Path):
     """Collective. The run state of a checkpoint, for ``model`` (built from the same case), whose
-    initial state ``initial`` gives what the checkpoint leaves out (a case's unmoving walls)."""
+    initial state ``initial`` gives what the checkpoint leaves out (a case's unmoving walls). Where
+    ranks own particles (``initial.partition``), each rank keeps its own, in the boxes the checkpoint
+    was written with if it was written on as many ranks (the same trajectory continues)."""
     attrs, mesh = data["attrs"], model.mesh
     if int(attrs["n_global_cells"]) != mesh.n_global_cells:
         raise CaseError(f"--restart {path}: the checkpoint is of a mesh of {int(attrs['n_global_cells'])} cells, "
@@ -161,6 +182,12 @@ def restore(comm, data: dict, model, initial, path: Path):
                                                                for name in WALL_FIELDS}))
     if "fluid" in data:
         state = replace(state, **restored_fluid(comm, data["fluid"], mesh, path))
+    if initial.partition is not None:   # ranks own particles: the boxes written, on as many ranks
+        stored = Partition.from_array(data["ownership"]["partition"]) if "ownership" in data else None
+        if stored is None or len(stored.lower) != comm.size:
+            x = state.particles.x if comm.rank == 0 else np.zeros((0, 3))
+            stored = bisect(comm, x, (mesh.lower, mesh.upper))
+        state = state.owned_by(comm.rank, stored)
     return state
 
 

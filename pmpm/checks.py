@@ -58,7 +58,12 @@ def before_running(comm, model, state, output: Path, restart: str | None) -> str
     case, mesh = model.case, model.mesh
     check_boundary_settings(comm, case)
     check_boundary_fluxes(comm, case, mesh)
-    check_particles_fit(case, mesh, state.particles)
+    try:   # (where ranks own particles, each checks its own)
+        check_particles_fit(case, mesh, state.particles)
+        error = None
+    except CaseError as exc:
+        error = exc
+    agree(comm, error)
     check_injections(comm, model, state)
     if restart is not None and state.time >= case.run.end_time * (1 - 1e-12):
         raise CaseError(f"--restart {restart}: the checkpoint is at t = {state.time:g} s, at or after "
@@ -359,7 +364,7 @@ def check_disk(comm, model, state, folder: Path) -> str:
     vertices = int(comm.allreduce(int(np.count_nonzero(mesh.vertex_owned))))
     corners = mesh.cell_vertices.shape[1]
     with_fluid = model.flow is not None
-    n_now = len(state.particles)
+    n_now = state.n_global_particles
     injected = 0.0
     for injector, next_release in zip(model.injectors, state.releases):
         s = injector.section

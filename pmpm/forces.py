@@ -1,6 +1,8 @@
 """Body forces on the particles: gravity with buoyancy, and the field forces of paper eq. 9-10.
 
-Pure functions of the particle arrays; every rank computes the same forces for every particle.
+Pure functions of the particle arrays; where every rank holds every particle, every rank computes
+the same forces for every particle; where ranks own particles, each its own, with ghost copies of
+the others' within the cutoff.
 
 Eq. 9, between particles i and j at centre distance R (within ``cutoff``)::
 
@@ -19,6 +21,7 @@ from scipy.spatial import cKDTree
 
 from .arrays import sum_rows
 from .collisions import Walls, closest_points_on_triangles
+from .ownership import Halo, Partition
 from .particles import ParticleState
 
 
@@ -77,11 +80,21 @@ def wall_field_forces(x, mass, walls: Walls, G_w, n4, n5, cutoff) -> np.ndarray:
     return sum_rows(p, (size / R)[:, None] * towards, n)
 
 
-def field_forces_of_case(state: ParticleState, walls: Walls | None, section) -> np.ndarray:
-    """Eq. 9-10 with the [field_forces] section's constants (cutoff: 5 mean diameters by default)."""
-    if len(state) == 0:
-        return np.zeros((0, 3))
-    cutoff = section.cutoff if section.cutoff is not None else 5.0 * 2.0 * float(np.mean(state.radius))
-    return field_forces(state, walls, section.G_p, section.n1, section.n2, section.n3,
-                        section.G_w, section.n4, section.n5, cutoff)
+def field_forces_of_case(state: ParticleState, walls: Walls | None, section, comm=None,
+                         partition: Partition | None = None) -> np.ndarray:
+    """Eq. 9-10 with the [field_forces] section's constants (cutoff: 5 mean diameters by default).
 
+    With ``partition`` (collective over ``comm``): ``state`` holds the particles this rank owns, and
+    the pairs reach the particles of other ranks within the cutoff through ghost copies of them
+    (``ownership.Halo``); the default cutoff is from the mean diameter over every rank."""
+    if partition is None:
+        if len(state) == 0:
+            return np.zeros((0, 3))
+        cutoff = section.cutoff if section.cutoff is not None else 5.0 * 2.0 * float(np.mean(state.radius))
+        return field_forces(state, walls, section.G_p, section.n1, section.n2, section.n3,
+                            section.G_w, section.n4, section.n5, cutoff)
+    count, total = comm.allreduce(np.array([len(state), state.radius.sum()]))
+    cutoff = section.cutoff if section.cutoff is not None else 5.0 * 2.0 * total / max(count, 1.0)
+    halo, local = Halo.build(comm, partition, state, cutoff * (1 + 1e-9))
+    return field_forces(local, walls, section.G_p, section.n1, section.n2, section.n3, section.G_w, section.n4,
+                        section.n5, cutoff)[halo.owned]

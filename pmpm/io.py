@@ -21,6 +21,7 @@ import h5py  # noqa: E402
 
 from .errors import CaseError  # noqa: E402
 from .mesh import VTK_ORDER  # noqa: E402
+from .ownership import gather  # noqa: E402
 from .parallel import agree  # noqa: E402
 
 XDMF_TOPOLOGY = {"hex": "Hexahedron", "tet": "Tetrahedron"}
@@ -312,8 +313,10 @@ class Writers:
                    bodies)
 
     def write(self, state) -> None:
-        """Collective. One output time of a ``pmpm.state.RunState``."""
+        """Collective. One output time of a ``pmpm.state.RunState`` (particles owned by ranks gathered first)."""
         particles = state.particles
+        if state.partition is not None:
+            particles = gather(self.fields.comm, particles)
         fields = {}
         if self.with_fluid:
             fields = {"velocity": state.fluid.u, "pressure": state.fluid.p, "volume_fraction": state.volume_fraction}

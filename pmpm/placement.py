@@ -15,6 +15,7 @@ from scipy.spatial import cKDTree
 
 from .collisions import wall_distances
 from .injection import NewParticles
+from .parallel import allreduce_sum
 from .particles import ParticleState
 
 
@@ -29,7 +30,7 @@ class Placement:
 def place_releases(mesh, particles: ParticleState, walls, new: NewParticles) -> Placement:
     """Collective. Each new particle at the first of its positions (the release point, then its
     alternatives) that lies in the domain, clear of ``walls`` (None: no walls to keep clear of) and
-    of ``particles``; among the new ones an earlier particle keeps its place and a later one moves
+    of ``particles`` (every rank's: a rank may hold only its own); among the new ones an earlier particle keeps its place and a later one moves
     on. Counts: ``placed`` (at the first try), ``retried`` (placed at a later one), ``dropped``."""
     n = len(new)
     candidates = np.concatenate([new.x[None], new.other_positions])          # (attempts, n, 3)
@@ -39,8 +40,11 @@ def place_releases(mesh, particles: ParticleState, walls, new: NewParticles) -> 
     usable[usable] = mesh.inside_domain(points[usable])
     if walls is not None and len(walls):
         usable[usable] = wall_distances(points[usable], walls, radius[usable]) >= radius[usable] * (1 - 1e-9)
-    if len(particles):
-        usable[usable] = ~overlaps(particles.x, particles.radius, points[usable], radius[usable])
+    clash = overlaps(particles.x, particles.radius, points[usable], radius[usable]) if len(particles) else \
+        np.zeros(int(usable.sum()), bool)
+    if mesh.comm.size > 1:   # where ranks own particles, each knows its own (replicated: the same everywhere)
+        clash = allreduce_sum(mesh.comm, clash.astype(np.int64)) > 0
+    usable[usable] = ~clash
     usable = usable.reshape(attempts, n)
     choice = first_usable(usable)
     while True:   # new against new: the later of two overlapping particles moves on (each round

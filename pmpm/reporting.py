@@ -59,7 +59,7 @@ def describe(model, state, setup_seconds: float) -> str:
         f"pmpm: case {case.path}",
         f"  models:    {', '.join(case.models()) or 'none'}",
         f"  mesh:      {mesh.describe()}",
-        f"  particles: {len(state.particles)} at start, {len(model.injectors)} injection(s)",
+        f"  particles: {state.n_global_particles} at start, {len(model.injectors)} injection(s)",
         f"  ranks:     {comm.size}",
         f"  time:      0 → {run.end_time:g} s, " + (f"dt = {run.dt:g} s ({steps} steps)" if not run.adaptive_cfl else
                                                    f"dt ≤ {run.dt:g} s adapted to CFL {run.adaptive_cfl:g}")
@@ -145,21 +145,36 @@ def warn_once(comm, message: str) -> None:
 
 def summary(model, state, status: str, seconds: dict) -> dict:
     """Collective. The contents of summary.json."""
+    owned = state.partition is not None
+    count = state.n_global_particles
     return {
         "case": str(model.case.path), "status": status, "ranks": model.comm.size,
-        "cells": model.mesh.n_global_cells, "particles": len(state.particles), "particles_removed": state.removed,
+        "cells": model.mesh.n_global_cells, "particles": count, "particles_removed": state.removed,
         "particles_removed_through": dict(state.removed_through),
+        **({"particles_per_rank": largest_per_rank(model.comm, state.ranks_seen)} if owned else {}),
         "steps": state.step, "simulated_time": state.time, "models": model.case.models(),
         "wall_seconds": seconds,
         "diagnostics": diagnostics(model, state),
     }
 
 
+def largest_per_rank(comm, seen: dict) -> dict:
+    """Collective. The most owned and ghost particles a rank held in a step of the run, and the most
+    bytes a rank sent in one contact step (ghosts, shadow-copy merges, gathered contacts)."""
+    keys = ("owned", "ghosts", "exchanged_bytes")
+    largest = np.max(comm.allgather([seen.get(key, 0) for key in keys]), axis=0)
+    return {"largest_owned": int(largest[0]), "largest_ghosts": int(largest[1]),
+            "largest_bytes_sent_in_a_contact_step": int(largest[2])}
+
+
 def diagnostics(model, state) -> dict:
     """Collective. Conservation checks for summary.json."""
     particles = state.particles
-    result = {"particle_kinetic_energy": 0.5 * float(np.sum(particles.mass * np.sum(particles.v ** 2, axis=1))),
-              "particle_momentum": (particles.mass[:, None] * particles.v).sum(axis=0)}
+    sums = np.concatenate([[0.5 * float(np.sum(particles.mass * np.sum(particles.v ** 2, axis=1)))],
+                           (particles.mass[:, None] * particles.v).sum(axis=0)])
+    if state.partition is not None:   # each rank its own particles
+        sums = allreduce_sum(model.comm, sums)
+    result = {"particle_kinetic_energy": float(sums[0]), "particle_momentum": sums[1:]}
     if model.contact_settings is not None:
         result["collisions"] = dict(state.collision_totals)
     if model.injectors:

@@ -20,6 +20,7 @@ from .bodies import Body, build_bodies
 from .case import Case, case_path, load_case, suggest
 from .collisions import (CollisionSettings, advance_with_collisions, build_walls, check_initial_particles,
                          collision_settings)
+from .collisions.subdomains import advance_owned
 from .coupling import CouplingMemory, External, PatchForcing, PenaltyForcing, build_forcing, volume_fraction
 from .coupling.bodies import BodyForcing
 from .errors import CaseError, NumericalError, Stopped
@@ -29,6 +30,8 @@ from .forces import field_forces_of_case, gravity_buoyancy
 from .injection import Injector, NewParticles, build_injectors, initial_particles
 from .placement import place_releases
 from .mesh import Mesh
+from .migration import exit_triangles as exit_triangles_of, migrate_particles
+from .ownership import bisect, gather
 from .parallel import allreduce_sum, print0
 from .particles import FIXED, ParticleState, accelerate
 from .reporting import StageTimes
@@ -55,10 +58,17 @@ class Model:
     bodies: tuple[Body, ...] = ()
     body_forcing: BodyForcing | None = None
     exits: ExitFaces | None = None
+    exit_triangles: tuple | None = None   # where ranks own particles: the triangles particles leave through
 
     @property
     def fluid_density(self) -> float:
         return self.case.fluid.density if self.case.fluid is not None else 0.0
+
+    @property
+    def owns_particles(self) -> bool:
+        """Whether each rank holds only the particles it owns (``pmpm.ownership``): a run without a
+        flow on several ranks. With a flow every rank holds every particle (ARCHITECTURE.md)."""
+        return self.flow is None and self.comm.size > 1
 
 
 def build_mesh(comm, case: Case) -> Mesh:
@@ -92,8 +102,9 @@ def build_model(comm, case: Case, mesh: Mesh) -> Model:
             body_forcing = BodyForcing(mesh, bodies, case.coupling, case.fluid.density, case.fluid.viscosity)
     # which boundary each particle that leaves crosses (only where particles can be)
     exits = ExitFaces.of_mesh(mesh) if (case.particles is not None or case.injections) else None
+    exit_triangles = exit_triangles_of(case, mesh) if flow is None and comm.size > 1 else None
     return Model(comm, case, mesh, flow, forcing, build_injectors(case),
-                 collision_settings(case) if case.collisions else None, bodies, body_forcing, exits)
+                 collision_settings(case) if case.collisions else None, bodies, body_forcing, exits, exit_triangles)
 
 
 def initial_state(model: Model) -> RunState:
@@ -108,7 +119,17 @@ def initial_state(model: Model) -> RunState:
                      releases=(0,) * len(model.injectors), coupling=CouplingMemory() if fluid is not None else None,
                      walls=walls)
     state = add_particles(model, state, initial_particles(case), validate=True)
-    return replace(state, fresh_from=state.next_id)
+    return distribute(model, replace(state, fresh_from=state.next_id))
+
+
+def distribute(model: Model, state: RunState) -> RunState:
+    """Collective. Where ranks own particles (``Model.owns_particles``): the case's particles, which
+    every rank read whole, as each rank's own, in boxes bisected over them. Otherwise the state."""
+    if not model.owns_particles:
+        return state
+    comm, mesh = model.comm, model.mesh
+    x = state.particles.x if comm.rank == 0 else np.zeros((0, 3))
+    return state.owned_by(comm.rank, bisect(comm, x, (mesh.lower, mesh.upper)))
 
 
 def add_particles(model: Model, state: RunState, new: NewParticles, validate: bool = False) -> RunState:
@@ -119,11 +140,15 @@ def add_particles(model: Model, state: RunState, new: NewParticles, validate: bo
     if validate:
         check_initial_particles(model.case, new, model.mesh.inside_domain(new.x), state.walls)
     n = len(new)
-    particles = state.particles.appended(state.next_id + np.arange(n), new.x, new.v, new.omega, new.radius,
-                                         new.density, new.motion)
+    mine = np.ones(n, bool)
+    if state.partition is not None:   # every rank took the same decision: each keeps its own
+        mine = state.partition.owner_of(new.x) == model.comm.rank
+    k = int(mine.sum())
+    particles = state.particles.appended(state.next_id + np.flatnonzero(mine), new.x[mine], new.v[mine],
+                                         new.omega[mine], new.radius[mine], new.density[mine], new.motion[mine])
     return replace(state, particles=particles, next_id=state.next_id + n,
-                   hydro_force=np.concatenate([state.hydro_force, np.zeros((n, 3))]),
-                   hydro_torque=np.concatenate([state.hydro_torque, np.zeros((n, 3))]))
+                   hydro_force=np.concatenate([state.hydro_force, np.zeros((k, 3))]),
+                   hydro_torque=np.concatenate([state.hydro_torque, np.zeros((k, 3))]))
 
 
 # ----------------------------------------------------------------------------------------------
@@ -143,16 +168,18 @@ def advance(model: Model, state: RunState, dt: float, times: StageTimes) -> RunS
     moved_from = state.particles.x
     with times.stage("collisions" if model.contact_settings is not None else "motion"):
         state = move_particles(model, state, force, torque, dt)
-    # 8. particles that left the domain are removed
+    # 8. particles that left the domain are removed; particles whose centre changed rank migrate
     with times.stage("owners"):
-        state = remove_outside(model, state, moved_from)
+        state = remove_outside(model, state, moved_from) if state.partition is None else \
+            migrate_particles(model.comm, model.exit_triangles, model.exits, state, moved_from, dt)
     # 1 (of the next step). particles released within this step, where they are at its end
     state = replace(state, fresh_from=state.next_id)
     if model.injectors:
         with times.stage("injection"):
             state = inject(model, state, state.time + dt)
     state = replace(state, time=state.time + dt, step=state.step + 1, dt=dt)
-    check_finite(state.particles, state.step, state.time)
+    if state.partition is None:   # (else checked by migrate_particles)
+        check_finite(state.particles, state.step, state.time)
     return state
 
 
@@ -181,7 +208,7 @@ def external_forces(model: Model, state: RunState) -> External:
     case, particles = model.case, state.particles
     force = gravity_buoyancy(particles, np.array(case.run.gravity), model.fluid_density)
     if case.field_forces is not None:
-        force += field_forces_of_case(particles, state.walls, case.field_forces)
+        force += field_forces_of_case(particles, state.walls, case.field_forces, model.comm, state.partition)
     return External(force, np.zeros_like(force))
 
 
@@ -285,7 +312,14 @@ def move_particles(model: Model, state: RunState, force: np.ndarray, torque: np.
     for _ in range(substeps):
         accelerate(particles, force, torque, dt / substeps)
         if model.contact_settings is not None:
-            result = advance_with_collisions(particles, walls, dt / substeps, model.contact_settings, contacts)
+            if state.partition is not None:
+                result = advance_owned(model.comm, state.partition, particles, walls, dt / substeps,
+                                       model.contact_settings, contacts)
+                seen = {key: max(state.ranks_seen.get(key, 0), result.stats.pop(key))
+                        for key in ("owned", "ghosts", "exchanged_bytes")}
+                state = replace(state, ranks_seen=seen)
+            else:
+                result = advance_with_collisions(particles, walls, dt / substeps, model.contact_settings, contacts)
             walls, contacts = result.walls, result.memory
             totals = {**totals, **{key: totals.get(key, 0) + int(value) for key, value in result.stats.items()}}
         else:
@@ -342,7 +376,11 @@ class Simulation:
     flow = property(lambda self: self.model.flow)
     forcing = property(lambda self: self.model.forcing)
     time = property(lambda self: self.state.time)
-    particles = property(lambda self: self.state.particles)
+    @property
+    def particles(self) -> ParticleState:
+        """Every particle (collective where ranks own particles: gathered, in id order)."""
+        return gather(self.comm, self.state.particles) if self.state.partition is not None else self.state.particles
+
     fluid_state = property(lambda self: self.state.fluid)
     hydro_force = property(lambda self: self.state.hydro_force)
     hydro_torque = property(lambda self: self.state.hydro_torque)
@@ -386,7 +424,7 @@ class Simulation:
                         checkpoint_time = time
                         while next_checkpoint <= time * (1 + 1e-9):
                             next_checkpoint += every
-                    progress.update(self.state.step, time, f"  particles {len(self.state.particles)}")
+                    progress.update(self.state.step, time, f"  particles {self.state.n_global_particles}")
                     signal_number = stops.agreed(self.comm)
                     if signal_number:
                         stop = Stopped(stop_message(self.state, signal_number, output), signal_number)
@@ -442,6 +480,10 @@ def next_time_step(model: Model, state: RunState, until: float) -> float:
             rate *= FIRST_STEP_SPEEDUP
         limit = min(limit, target / rate) if rate > 0 else limit
     speed = float(np.linalg.norm(state.particles.v, axis=1).max(initial=0.0))
+    if state.partition is not None:
+        speed = model.comm.allreduce(speed, op=MPI.MAX)
+        if model.flow is None:
+            length = model.comm.allreduce(length, op=MPI.MIN)
     if speed > 0:
         limit = min(limit, target * length / speed)
     last = state.dt

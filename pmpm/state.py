@@ -6,13 +6,14 @@ reference, and writes it if the step fails; and ``pmpm.checkpoint`` writes and r
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from .collisions import ContactMemory, Walls
 from .coupling import CouplingMemory
 from .fluid import FluidState
+from .ownership import Partition
 from .particles import ParticleState
 
 
@@ -21,7 +22,9 @@ class RunState:
     """One moment of a run (SI).
 
     time, step : simulated time (s) and steps taken; dt : the last step's size (s)
-    particles : every particle (``pmpm.particles``)
+    particles : every particle (``pmpm.particles``); with ``partition``, the particles this rank owns
+    partition : the ranks' boxes (``pmpm.ownership``) where particles are owned by ranks (runs without
+        a flow, on several ranks), else None (every rank holds every particle)
     fluid : the flow, or None without [fluid]
     hydro_force, hydro_torque : (n, 3) the fluid's force (N) and torque (N m) on each particle over the
         last step (zero where no flow acted yet)
@@ -40,6 +43,9 @@ class RunState:
     pressure_iterations : pressure KSP iterations summed over the run
     body_forces : (n_bodies, 6) the fluid's force (N) and torque (N m) on each [[body]] over the last
         step, or None
+    ranks_seen : where particles are owned by ranks, the largest number of owned and of ghost
+        particles this rank held in a contact step and the most bytes it sent in one (``owned``,
+        ``ghosts``, ``exchanged_bytes``; reduced over ranks for summary.json)
     """
 
     time: float
@@ -62,3 +68,24 @@ class RunState:
     collision_totals: dict = field(default_factory=dict)
     pressure_iterations: int = 0
     body_forces: np.ndarray | None = None
+    partition: Partition | None = None
+    ranks_seen: dict = field(default_factory=dict)
+
+    @property
+    def n_global_particles(self) -> int:
+        """The particles of the run on every rank together (ids are given once, removals counted)."""
+        return self.next_id - self.removed
+
+    def owned_by(self, rank: int, partition: Partition) -> "RunState":
+        """This state, whose particles every rank holds whole (the case's, a checkpoint's), as rank
+        ``rank``'s share in the boxes of ``partition``: its particles and the contact memory of the
+        contacts whose lower-id particle it owns."""
+        particles = self.particles
+        mine = partition.owner_of(particles.x) == rank
+        contacts = self.contacts
+        if contacts is not None:
+            kept = np.isin(contacts.first_id, particles.id[mine])
+            contacts = ContactMemory(contacts.first_id[kept], contacts.second_id[kept], contacts.normal_impulse[kept],
+                                     contacts.tangential_impulse[kept])
+        return replace(self, particles=particles.without(~mine), hydro_force=self.hydro_force[mine],
+                       hydro_torque=self.hydro_torque[mine], contacts=contacts, partition=partition)

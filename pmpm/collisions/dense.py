@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from . import jit
 from ..arrays import cross
 from .search import wall_arrays
 from .settings import COLD_SWEEPS, CONTACT_TOL, ENERGY_TOL, SWEEP_TOL
@@ -42,13 +43,7 @@ def dense_step(bodies, record, warm_n, warm_t, settings, dt, walls, kernels, cou
                                         deposition, changed, counters)
     v, w, inv_m, inv_i = bodies.v, bodies.w, bodies.inv_m, bodies.inv_i
     normal, gap = record.normal, record.gap
-    u = (v[first] - v[second] - record.wall_velocity
-         - cross(r_first[:, None] * w[first] + r_second[:, None] * w[second], normal))
-    closing = -(u * normal).sum(1)
-    touching = gap <= CONTACT_TOL * r_first
-    hits = (closing > settings.rest_speed) & (touching | (record.time <= dt))
-    target = np.where(hits, record.restitution * closing, -np.maximum(gap, 0.0) / dt)
-    hit_time = np.where(hits & ~touching & np.isfinite(record.time), record.time, 0.0)
+    closing, touching, hits, target, hit_time = targets(bodies, record, r_first, r_second, settings, dt)
     lam_n, lam_t = np.zeros(m), np.zeros((m, 3))
     lam_n[rows], lam_t[rows] = warm_n[rows], warm_t[rows]
     remembered = bool(lam_n.any())
@@ -79,19 +74,47 @@ def dense_step(bodies, record, warm_n, warm_t, settings, dt, walls, kernels, cou
                                  record.friction, inv_m, inv_i, v, w, lam_n, lam_t, COLD_SWEEPS * settings.dense_sweeps,
                                  tol)
         impulses.limit_energy(members, inv_m, inv_i, v, w, v0, w0, energy, ENERGY_TOL)
+    finish(bodies, record, rows, lam_n, lam_t, v0, touching, hits, hit_time, dt, sweeps, counters, extra)
+    return lam_n, lam_t
+
+
+def targets(bodies, record, r_first, r_second, settings, dt) -> tuple:
+    """Per contact of ``record``: the closing speed at the step's start (m/s), whether it touches,
+    whether it is an impact, the normal velocity it is driven to (m/s), and the time inside the
+    step its impact happens (s; 0 for a touching one and for the others)."""
+    v, w, first, second, normal, gap = bodies.v, bodies.w, record.first, record.second, record.normal, record.gap
+    u = (v[first] - v[second] - record.wall_velocity
+         - cross(r_first[:, None] * w[first] + r_second[:, None] * w[second], normal))
+    closing = -(u * normal).sum(1)
+    touching = gap <= CONTACT_TOL * r_first
+    hits = (closing > settings.rest_speed) & (touching | (record.time <= dt))
+    target = np.where(hits, record.restitution * closing, -np.maximum(gap, 0.0) / dt)
+    hit_time = np.where(hits & ~touching & np.isfinite(record.time), record.time, 0.0)
+    return closing, touching, hits, target, hit_time
+
+
+def finish(bodies, record, rows, lam_n, lam_t, v0, touching, hits, hit_time, dt, sweeps, counters, extra,
+           to_owners=None) -> None:
+    """After the solve of ``rows``: rolling friction, every body moved to the step's end, the counts.
+    ``to_owners`` (on several ranks): sums the ghost rows of per-body arrays on their owners."""
+    n, first, second, wall = len(bodies.radius) - 1, record.first, record.second, record.triangle >= 0
+    v, w = bodies.v, bodies.w
     # each body's velocity changed at the impulse-weighted time of its contacts (0 touching, t_c
     # for an impact inside the step): before it the body moved at its old velocity
     strength = np.sqrt(lam_n[rows] ** 2 + (lam_t[rows] ** 2).sum(1))
     weight = np.bincount(first[rows], strength, n + 1) + np.bincount(second[rows], strength, n + 1)
     late = (np.bincount(first[rows], strength * hit_time[rows], n + 1)
             + np.bincount(second[rows], strength * hit_time[rows], n + 1))
+    if to_owners is not None:
+        to_owners(weight[:n], late[:n])
     changed_at = np.divide(late, weight, out=np.zeros(n + 1), where=weight > 0)
     displacement = -(v - v0) * changed_at[:, None]
     size = np.sqrt((lam_t * lam_t).sum(1))
     sticking = touching & (lam_n > 0) & (size < record.friction * lam_n * (1 - 1e-9))
     rolling = rows[wall[rows] & (record.rolling_friction[rows] > 0) & sticking[rows]]
-    impulses.roll_resistance(rolling, first, normal, record.wall_velocity, lam_n, record.rolling_friction, inv_m,
-                             bodies.radius, v, w)
+    impulses = jit.kernels().impulses
+    impulses.roll_resistance(rolling, first, record.normal, record.wall_velocity, lam_n, record.rolling_friction,
+                             bodies.inv_m, bodies.radius, v, w)
     bodies.x += v * dt + displacement
     active = rows[lam_n[rows] > 0]
     impact = hits[active]
@@ -100,4 +123,3 @@ def dense_step(bodies, record, warm_n, warm_t, settings, dt, walls, kernels, cou
     counters[RESTING] += int((~impact).sum())
     counters[SWEEPS] += sweeps
     extra.update(dense_steps=1, dense_contacts=len(rows))
-    return lam_n, lam_t

@@ -184,6 +184,17 @@ def sweep(rows, first, second, normal, r_first, r_second, u_wall, target, mu, in
 
 
 @njit(cache=True)
+def sweep_once(rows, inv_kn, inv_kt, first, second, normal, r_first, r_second, u_wall, target, mu, inv_m, inv_i, v, w,
+               lam_n, lam_t):
+    """One projected Gauss–Seidel sweep over contacts ``rows`` (as ``sweep``, without its stopping
+    test and conjugate-gradient step): the block sweep of a rank between two exchanges of its shadow
+    copies' velocities (``subdomains``). ``inv_kn``, ``inv_kt`` (len(rows),): 1/k_n, 1/k_t per row."""
+    for r in range(len(rows)):
+        project(rows[r], inv_kn[r], inv_kt[r], first, second, normal, r_first, r_second, u_wall, target, mu, inv_m,
+                inv_i, v, w, lam_n, lam_t)
+
+
+@njit(cache=True)
 def warm_start(rows, first, second, normal, r_first, r_second, mu, inv_m, inv_i, v, w, lam_n, lam_t):
     """Apply remembered impulses (in ``lam_n``, ``lam_t``) after projecting them on today's normals
     and Coulomb cones; the projected values replace them."""

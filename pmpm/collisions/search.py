@@ -42,11 +42,12 @@ def candidate_pairs(x: np.ndarray, radius: np.ndarray, reach: float, cell_list,
 
 
 def find_contacts(bodies, walls: Walls | None, dt: float, reach: float, restitution: float, friction: float,
-                  kernels, around: np.ndarray | None = None, dense_contacts: int = 0) -> tuple[ContactRecord, bool]:
-    """The step's contacts (see the module's docstring), and whether the step is dense: at least
+                  kernels, around: np.ndarray | None = None, dense_contacts: int = 0, owned: np.ndarray | None = None,
+                  comm=None) -> tuple[ContactRecord, bool, int]:
+    """The step's contacts (see the module's docstring), whether the step is dense: at least
     ``dense_contacts`` (> 0) of them can act (touching, or closing within ``dt`` at the relative
-    speed of the centres); a dense step's record holds only those. With ``around`` (particle
-    indices), only the contacts of those particles.
+    speed of the centres), and how many can act; a dense step's record holds only those. With
+    ``around`` (particle indices), only the contacts of those particles.
 
     Parameters
     ----------
@@ -55,23 +56,35 @@ def find_contacts(bodies, walls: Walls | None, dt: float, reach: float, restitut
     dt : s; reach : m, how far two particles can close in the step.
     restitution, friction : particle–particle coefficients.
     kernels : the compiled modules (``jit.kernels()``).
+    owned : (n,) bool, on a rank of several (``subdomains``): only the contacts of these particles
+        are kept, and the contacts that can act are counted once, by the owner of ``first``, and
+        summed over ``comm`` (collective then), so every rank takes the same dense decision.
     """
     n = len(bodies.radius) - 1
     x, v, radius, free = bodies.x, bodies.v, bodies.radius, bodies.free
     narrow = kernels.narrow
     pairs = candidate_pairs(x[:n], radius[:n], reach, kernels.cell_list, around)
     keep, acts, normal, gap, time = narrow.pair_contacts(pairs[:, 0], pairs[:, 1], x, v, radius, free, reach, dt)
+    counted = acts
+    if owned is not None:
+        mine = owned[pairs[:, 0]] | owned[pairs[:, 1]]
+        keep, acts, counted = keep & mine, acts & mine, acts & owned[pairs[:, 0]]
     pair_part = (keep, acts, pairs, normal, gap, time)
     wall_part = None
     mobile = np.flatnonzero(free[:n])
     if around is not None:
         mobile = np.intersect1d(mobile, around)
+    if owned is not None:
+        mobile = mobile[owned[mobile]]
     if walls is not None and len(walls) and len(mobile):
         travel = walls.travel(dt)
         p, tri = walls.near(x[mobile], radius[mobile] + 0.5 * reach, extra=travel)
         p = mobile[p]
         wall_part = (p, tri) + narrow.wall_contacts(p, tri, x, v, radius, wall_arrays(walls), travel, 0.5 * reach, dt)
-    dense = 0 < dense_contacts <= int(acts.sum()) + (int(wall_part[3].sum()) if wall_part is not None else 0)
+    acting = int(counted.sum()) + (int(wall_part[3].sum()) if wall_part is not None else 0)
+    if comm is not None:
+        acting = comm.allreduce(acting)
+    dense = 0 < dense_contacts <= acting
     # a dense step needs only the contacts that can act; an event step all within reach
     take = np.flatnonzero(acts if dense else keep)
     k = len(take)
@@ -84,4 +97,4 @@ def find_contacts(bodies, walls: Walls | None, dt: float, reach: float, restitut
         parts.append(ContactRecord(p, np.full(len(p), n), tri, normal[take], gap[take], face[take], time[take],
                                    u_wall[take], walls.restitution[tri], walls.friction[tri],
                                    walls.rolling_friction[tri]))
-    return ContactRecord.concatenate(parts), dense
+    return ContactRecord.concatenate(parts), dense, acting

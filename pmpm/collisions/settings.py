@@ -36,7 +36,9 @@ class CollisionSettings:
     events; 0 never. ``dense_sweeps``: the most sweeps of a warm-started dense step (× 20 cold).
     ``resting_sweeps``: the most sweeps of the resting solve at a step's start (warm-started, tightly
     converged); ``settle_sweeps``: of one after a slow impact inside the step (cold; what it leaves
-    undone the next step's resting solve finishes).
+    undone the next step's resting solve finishes). ``gather_contacts``: where ranks own particles,
+    a step with fewer contacts that can act, over all ranks, gathers the particles in contact and
+    solves them as one rank does (``subdomains``); 0 never.
     """
 
     restitution: float = DEFAULT_RESTITUTION
@@ -49,6 +51,7 @@ class CollisionSettings:
     dense_sweeps: int = 20
     resting_sweeps: int = 100
     settle_sweeps: int = 50
+    gather_contacts: int = 4096
 
 
 COLD_SWEEPS = 20  # × dense_sweeps for a dense step without any remembered impulse
@@ -70,4 +73,6 @@ def collision_settings(case) -> CollisionSettings:
     substeps = case.coupling.substeps if getattr(case, "coupling", None) is not None else 1
     g = float(np.linalg.norm(case.run.gravity))
     rest = 3.0 * g * case.run.dt / substeps
-    return CollisionSettings(**coefficients, rest_speed=rest if rest > 0 else 1e-9)
+    gather = getattr(case.collisions, "gather_contacts", CollisionSettings.gather_contacts) \
+        if getattr(case, "collisions", None) is not None else CollisionSettings.gather_contacts
+    return CollisionSettings(**coefficients, rest_speed=rest if rest > 0 else 1e-9, gather_contacts=gather)

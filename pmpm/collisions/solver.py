@@ -100,7 +100,8 @@ class ContactStep:
 
 
 def advance_with_collisions(state: ParticleState, walls: Walls | None, dt: float, settings: CollisionSettings,
-                            memory: ContactMemory | None = None) -> ContactStep:
+                            memory: ContactMemory | None = None, speed: float | None = None,
+                            population: int | None = None) -> ContactStep:
     """Move every particle over ``dt`` with its contacts resolved (see the module's docstring).
 
     ``state`` is updated in place (x, v, omega, deposited). Free particles move with constant
@@ -110,6 +111,10 @@ def advance_with_collisions(state: ParticleState, walls: Walls | None, dt: float
     Rolling friction: at a resting, rolling contact with a wall (normal impulse J_n over the step)
     a torque μ_r N r opposes rolling; with the rolling constraint this slows the rolling velocity
     by (5/7) μ_r J_n / m (on a flat floor: deceleration (5/7) μ_r g) and the spin with it.
+
+    ``speed`` (m/s) and ``population``: the search's speed and the particle count the event budget
+    is for, where ``state`` is a part of the particles (``subdomains``: the ranks' contact
+    clusters gathered); by default this state's.
     """
     dt = float(dt)
     memory = ContactMemory.empty() if memory is None else memory
@@ -123,14 +128,15 @@ def advance_with_collisions(state: ParticleState, walls: Walls | None, dt: float
     walls = walls if walls is not None and len(walls) and start.free.any() else None
     wall_speed = float(walls.top_speed.max()) if walls is not None else 0.0
     # impacts can make a particle faster than any was (a light one hit by a heavy one, a paddle)
-    speed = max(SEARCH_SLACK * start.top_speed(), settings.rest_speed, 2.0 * wall_speed)
+    if speed is None:
+        speed = max(SEARCH_SLACK * start.top_speed(), settings.rest_speed, 2.0 * wall_speed)
     for attempt in range(MAX_SEARCHES):
         last = attempt == MAX_SEARCHES - 1
         bodies = start.copy()
         exceeded = counters[EXCEEDED]
         counters[:] = 0
         counters[EXCEEDED] = exceeded
-        record, dense = find_contacts(bodies, walls, dt, 2.0 * speed * dt, settings.restitution, settings.friction,
+        record, dense, _ = find_contacts(bodies, walls, dt, 2.0 * speed * dt, settings.restitution, settings.friction,
                                       kernels, dense_contacts=settings.dense_contacts)
         warm_n, warm_t = memory.recall(record, state.id)
         extra["contacts"] = len(record)
@@ -139,7 +145,7 @@ def advance_with_collisions(state: ParticleState, walls: Walls | None, dt: float
             break
         lam_n, lam_t = np.zeros(len(record)), np.zeros((len(record), 3))
         top = event_step(bodies, record, warm_n, warm_t, lam_n, lam_t, settings, dt, np.inf if last else speed,
-                         walls, kernels, counters)
+                         walls, kernels, counters, population)
         if top <= speed or last:
             break
         counters[EXCEEDED] += 1
@@ -157,7 +163,7 @@ def advance_with_collisions(state: ParticleState, walls: Walls | None, dt: float
 
 
 def event_step(bodies, record, warm_n, warm_t, lam_n, lam_t, settings, dt, speed_bound, walls, kernels,
-               counters) -> float:
+               counters, population: int | None = None) -> float:
     """The event schedule (``events.run_events``) over the record; the resting impulses of the step
     accumulate in ``lam_n``, ``lam_t``. Returns the largest speed reached (the step is unfinished
     if it exceeds ``speed_bound``)."""
@@ -171,7 +177,7 @@ def event_step(bodies, record, warm_n, warm_t, lam_n, lam_t, settings, dt, speed
                 record.restitution, driven, start, adjacency)
     scale = max(settings.rest_speed, bodies.top_speed(), 1e-300)
     tol = SWEEP_TOL * settings.rest_speed if settings.rest_speed > 0 else 1e-12 * scale
-    max_events = max(settings.max_events_per_particle * n, settings.min_events)
+    max_events = max(settings.max_events_per_particle * (n if population is None else population), settings.min_events)
     return float(kernels.events.run_events(bodies.kernel_tuple(), contacts, wall_arrays(walls),
                                            (warm_n, warm_t, lam_n, lam_t), dt, settings.rest_speed, max_events,
                                            speed_bound, settings.resting_sweeps, settings.settle_sweeps, tol,

@@ -1,0 +1,294 @@
+"""The contact engine on subdomains: each rank moves the particles it owns, with ghost copies of
+the particles of other ranks within contact range (docs/collisions.md, "Particles owned by ranks").
+
+Every rank builds the contact record over its owned and ghost particles (sorted by id, so every
+record is in the order of the 1-rank record restricted to it), keeping the contacts with at least
+one owned particle; the ranks agree on the step's search speed and on the regime (the contacts that
+can act, counted once each, by the owner of their lower-id particle). Then:
+
+- a **dense step with many contacts** (a bed, a hopper: at least ``gather_contacts`` that can
+  act, over all ranks) is a block Gauss–Seidel that conforms to the subdomains
+  (Preclik & Rüde 2015): a contact is solved by the rank that owns its lower-id particle (walls:
+  the particle's owner), each rank sweeps its contacts in the record's order, and after each
+  sweep every rank holding a particle sends the others the change its sweep made to the
+  particle's velocities, and all set the same merged value (``Halo.merge``: one message each way
+  per pair of ranks sharing particles, per sweep; Jacobi between subdomains, Gauss–Seidel inside).
+  A particle in the contacts of k ranks has 1/k of its mass on each and the changes are averaged
+  (mass splitting, Tonge et al. 2012), so the merged velocity is v0 + Σ J / m over every rank's
+  impulses. The stopping test, the energy check and the deposition flags meet in reductions, so
+  every rank makes the same number of sweeps. Overlaps are removed per rank over its contacts
+  (positions, each rank keeping its owned particles').
+- any other step (an event step, or a dense one with fewer contacts) gathers the particles of
+  every contact, from their owners, on every rank, which all take the same step
+  (``advance_with_collisions``, with the global search speed and particle count) and keep their
+  owned particles' results: the gather is bounded by the contacts, and such steps (impacts in
+  time order, a pair or a column across the cut, a small pile) give the 1-rank result to the bit.
+
+On one rank this is ``advance_with_collisions`` itself.
+"""
+from __future__ import annotations
+
+import numpy as np
+from mpi4py import MPI
+
+from . import jit
+from .record import ContactMemory
+from .search import find_contacts, wall_arrays
+from .dense import finish, targets
+from .settings import COLD_SWEEPS, ENERGY_TOL, SEARCH_SLACK, SWEEP_TOL, CollisionSettings
+from .solver import Bodies, ContactStep, advance_with_collisions, remove_overlaps
+from .stats import CLAMPS, DEPOSITED, EXTRA, NAMES, SWEEPS, as_dict, new_counters
+from .walls import Walls
+from ..ownership import Halo, Partition, particle_rows, particles_of
+from ..particles import FREE, PRESCRIBED, ParticleState
+
+
+def advance_owned(comm, partition: Partition, state: ParticleState, walls: Walls | None, dt: float,
+                  settings: CollisionSettings, memory: ContactMemory | None = None) -> ContactStep:
+    """Collective. ``advance_with_collisions`` for the particles this rank owns (``state``, updated
+    in place) among every rank's; ``memory`` holds the contacts whose lower-id particle this rank
+    owns, and so does the returned one. ``stats`` are the same on every rank (summed over ranks),
+    with ``owned``, ``ghosts`` and ``exchanged_bytes`` (sent in the step's ghost exchanges) added,
+    this rank's."""
+    if comm.size == 1:
+        return advance_with_collisions(state, walls, dt, settings, memory)
+    dt = float(dt)
+    memory = ContactMemory.empty() if memory is None else memory
+    walls_after = walls.moved(dt) if walls is not None else None
+    kernels = jit.kernels()
+    owned_bodies = Bodies.of(state)
+    free_anywhere, top, r_max, population = reduced(comm, max_of=(float(owned_bodies.free.any()),
+                                                                  owned_bodies.top_speed(),
+                                                                  float(state.radius.max(initial=0.0))),
+                                                    sum_of=(len(state),))
+    population = int(round(population))
+    used_walls = walls if walls is not None and len(walls) and free_anywhere else None
+    wall_speed = float(used_walls.top_speed.max()) if used_walls is not None else 0.0
+    speed = max(SEARCH_SLACK * top, settings.rest_speed, 2.0 * wall_speed)
+    reach = 2.0 * speed * dt
+    # every particle within contact range of a rank's box is a ghost there
+    halo, local = Halo.build(comm, partition, state, (state.radius + r_max + reach) * (1 + 1e-9))
+    n = len(local)
+    owned = np.append(halo.owned, False)              # the world row last
+    bodies = Bodies.of(local)
+    record, dense, acting = find_contacts(bodies, used_walls, dt, reach, settings.restitution, settings.friction,
+                                          kernels, dense_contacts=settings.dense_contacts, owned=halo.owned, comm=comm)
+    extra = {"owned": len(state), "ghosts": n - len(state)}
+    if not dense or acting < settings.gather_contacts:
+        step = gathered_step(comm, state, local, halo, record, walls, dt, settings, memory, speed, population)
+        step.stats.update(extra, exchanged_bytes=halo.sent)   # (this rank's)
+        return step
+    counters = new_counters()
+    warm_n, warm_t = memory.recall(record, local.id)
+    mine = owned[record.first]
+    lam_n, lam_t = dense_blocks(halo, bodies, record, np.flatnonzero(mine), warm_n, warm_t, settings, dt,
+                                used_walls, kernels, counters, extra)
+    remove_overlaps(bodies, record, walls_after, kernels, extra, reach, thorough=False)
+    rows = np.flatnonzero(halo.owned)
+    state.x[:] = bodies.x[rows]
+    free = state.motion == FREE
+    state.v[free] = bodies.v[rows][free]
+    state.omega[:] = bodies.w[rows]
+    state.deposited[:] = bodies.deposited[rows]
+    memory = ContactMemory.remember(record, local.id, lam_n, lam_t, mine)
+    extra["exchanged_bytes"] = halo.sent
+    return ContactStep(summed_stats(comm, counters, extra), memory, walls_after)
+
+
+def reduced(comm, max_of: tuple, sum_of: tuple) -> list:
+    """Collective. The maxima over ranks of ``max_of`` and the sums of ``sum_of``, from one gather."""
+    values = np.array(max_of + sum_of, float)
+    every = np.empty((comm.size, len(values)))
+    comm.Allgather(values, every)
+    return [float(v) for v in every[:, :len(max_of)].max(axis=0)] + [float(v) for v in every[:, len(max_of):].sum(axis=0)]
+
+
+def summed_stats(comm, counters: np.ndarray, extra: dict) -> dict:
+    """Collective. The step's counts summed over ranks (sweeps and dense steps: the same on every rank)."""
+    names = [name for name in EXTRA if name != "dense_steps"]
+    values = np.concatenate([counters, [extra.get(name, 0) for name in names]]).astype(np.int64)
+    total = np.empty_like(values)
+    comm.Allreduce(values, total, op=MPI.SUM)
+    total[SWEEPS] = counters[SWEEPS]
+    summed = dict(zip(names, total[len(NAMES):]))
+    stats = as_dict(total[:len(NAMES)], {**summed, "dense_steps": extra.get("dense_steps", 0)})
+    stats.update(owned=extra["owned"], ghosts=extra["ghosts"], exchanged_bytes=extra["exchanged_bytes"])
+    return stats
+
+
+# ----------------------------------------------------------------------------------------------
+# Few contacts: the contacts' particles gathered, one step on every rank
+# ----------------------------------------------------------------------------------------------
+def gathered_step(comm, state, local, halo, record, walls, dt, settings, memory, speed, population) -> ContactStep:
+    """Collective. The step of the particles in contact (``record``'s), gathered from their owners on
+    every rank and moved there identically; the other owned particles fly freely."""
+    n = len(local)
+    involved = np.zeros(n + 1, bool)
+    involved[record.first] = True
+    involved[record.second] = True
+    involved = involved[:n] & halo.owned
+    # the memory of the contacts of the particles sent (those whose lower-id particle is owned here)
+    held = np.isin(memory.first_id, local.id[involved])
+    sent = (particle_rows(local, involved), {name: values[held] for name, values in memory.to_arrays().items()})
+    halo.sent += (comm.size - 1) * sum(values.nbytes for part in sent for values in part.values())
+    parts = comm.allgather(sent)
+    cluster = particles_of({name: np.concatenate([part[0][name] for part in parts]) for name in parts[0][0]})
+    joined = {name: np.concatenate([part[1][name] for part in parts]) for name in parts[0][1]}
+    order = np.argsort(ContactMemory.key_of(joined["first_id"], joined["second_id"]), kind="stable")
+    memory = ContactMemory(*(joined[name][order] for name in ("first_id", "second_id", "normal_impulse",
+                                                               "tangential_impulse")))
+    result = advance_with_collisions(cluster, walls, dt, settings, memory, speed=speed, population=population)
+    # owned particles out of every contact fly at their velocity (fixed and deposited ones stay)
+    moving = ((state.motion == FREE) & ~state.deposited) | ((state.motion == PRESCRIBED) & ~state.deposited)
+    state.x[moving] += state.v[moving] * dt
+    at = np.searchsorted(cluster.id, state.id)
+    found = at < len(cluster)
+    found[found] = cluster.id[at[found]] == state.id[found]
+    rows, source = np.flatnonzero(found), at[found]
+    for name in ("x", "v", "omega", "deposited"):
+        getattr(state, name)[rows] = getattr(cluster, name)[source]
+    mine = np.isin(result.memory.first_id, state.id)
+    kept = ContactMemory(result.memory.first_id[mine], result.memory.second_id[mine],
+                         result.memory.normal_impulse[mine], result.memory.tangential_impulse[mine])
+    return ContactStep(dict(result.stats), kept, result.walls)
+
+
+# ----------------------------------------------------------------------------------------------
+# The dense regime: block Gauss–Seidel over the subdomains
+# ----------------------------------------------------------------------------------------------
+def dense_blocks(halo: Halo, bodies, record, rows, warm_n, warm_t, settings, dt, walls, kernels, counters, extra):
+    """``dense.dense_step`` over this rank's contacts ``rows`` (those whose ``first`` it owns), the
+    ranks' shadow copies merged after every change (see the module's docstring). Returns the
+    contacts' impulses (m,) and (m, 3) (N s, on ``first``; 0 on other ranks' contacts)."""
+    comm, impulses = halo.comm, kernels.impulses
+    n, m = len(bodies.radius) - 1, len(record)
+    first, second, triangle = record.first, record.second, record.triangle
+    rows = rows[~kernels.narrow.parallel_duplicates(rows, first, triangle, record.gap, record.normal, bodies.radius)]
+    wall = triangle >= 0
+    r_first = bodies.radius[first]
+    r_second = np.where(wall, 0.0, bodies.radius[second])
+    deposition = wall_arrays(walls)[9]
+    if deposition.any():   # (the same on every rank)
+        deposit(halo, bodies, record, rows, r_first, deposition, kernels, counters)
+    v, w, inv_m, inv_i = bodies.v, bodies.w, bodies.inv_m, bodies.inv_i
+    normal = record.normal
+    closing, touching, hits, target, hit_time = targets(bodies, record, r_first, r_second, settings, dt)
+    lam_n, lam_t = np.zeros(m), np.zeros((m, 3))
+    lam_n[rows], lam_t[rows] = warm_n[rows], warm_t[rows]
+    members = np.unique(np.concatenate([first[rows], second[rows]]))
+    members = members[members < n]
+    owned_members = members[halo.owned[members]]
+    v0, w0 = v.copy(), w.copy()
+    driven = bodies.driven[first[rows]] | bodies.driven[second[rows]]
+    if walls is not None:
+        moving = walls.velocity.any(1) | walls.angular_velocity.any(1)
+        driven |= wall[rows] & moving[np.maximum(triangle[rows], 0)]
+    scale = max(float(np.abs(closing[rows]).max(initial=0.0)), settings.rest_speed, 1e-300)
+    tol = SWEEP_TOL * settings.rest_speed if settings.rest_speed > 0 else 1e-12 * scale
+    remembered, driven, tol, energy = reduced(comm, max_of=(float(lam_n.any()), float(driven.any()), tol),
+                                              sum_of=(impulses.kinetic_energy(owned_members, inv_m, inv_i, v, w),))
+    # a particle in the contacts of several ranks: its mass split among them (Tonge et al. 2012)
+    in_contact = np.zeros(n, bool)
+    in_contact[members] = True
+    split = np.append(halo.holders(in_contact), 1.0)
+    light_m, light_i = inv_m * split, inv_i * split
+    reference = (v.copy(), w.copy())
+    if remembered:
+        impulses.warm_start(rows, first, second, normal, r_first, r_second, record.friction, light_m, light_i, v, w,
+                            lam_n, lam_t)
+        halo.merge(reference, v, w, split=split[:n])
+    budget = settings.dense_sweeps if remembered else COLD_SWEEPS * settings.dense_sweeps
+    contacts = (first, second, normal, r_first, r_second, record.wall_velocity)
+    sweeps = block_sweeps(halo, rows, contacts, target, record.friction, (light_m, light_i, v, w), split[:n], lam_n,
+                          lam_t, reference, budget, tol, kernels)
+    after = comm.allreduce(impulses.kinetic_energy(owned_members, inv_m, inv_i, v, w))
+    if not driven and after > energy * (1 + ENERGY_TOL) + 1e-300:
+        # Newton's law over simultaneous contacts, or the ranks' blocks, can make energy: every
+        # impulse scaled back (velocities and impulses alike) to the energy the bodies had
+        counters[CLAMPS] += comm.rank == 0
+        s = limit_energy(halo, owned_members, bodies, v0, w0, energy)
+        lam_n *= s
+        lam_t *= s
+    finish(bodies, record, rows, lam_n, lam_t, v0, touching, hits, hit_time, dt, sweeps, counters, extra,
+           to_owners=halo.to_owners)
+    extra["contacts"] = len(rows)
+    return lam_n, lam_t
+
+
+def block_sweeps(halo: Halo, rows, contacts, target, mu, bodies, split, lam_n, lam_t, reference, budget: int,
+                 tol: float, kernels) -> int:
+    """Collective. Sweeps of this rank's contacts ``rows``, the shadow copies merged after each, until
+    no owned body's contact-point velocity changed by more than ``tol`` (m/s) in a sweep, on any
+    rank, or ``budget`` sweeps; returns the sweeps made (the same on every rank). ``bodies``:
+    (1/m, 1/I, v, ω) with the masses split among the ranks sharing a particle (``split``, per local row). A sweep's test is
+    reduced over the ranks while the next sweep runs (a nonblocking reduction, so no sync of its
+    own): the sweeps stop one sweep after the one that converged."""
+    first, second, normal, r_first, r_second, u_wall = contacts
+    inv_m, inv_i, v, w = bodies
+    a, b = first[rows], second[rows]
+    k_n = inv_m[a] + inv_m[b]
+    k_t = k_n + inv_i[a] * r_first[rows] ** 2 + inv_i[b] * r_second[rows] ** 2
+    inv_kn = np.divide(1.0, k_n, out=np.zeros(len(rows)), where=k_n > 0)
+    inv_kt = np.divide(1.0, k_t, out=np.zeros(len(rows)), where=k_t > 0)
+    arm = np.zeros(len(inv_m))
+    np.maximum.at(arm, a, r_first[rows])
+    np.maximum.at(arm, b, r_second[rows])
+    watched = np.flatnonzero(np.append(halo.owned, False) & (inv_m > 0) & (arm > 0))
+    done, pending, largest = 0, None, np.zeros(1)
+    while done < budget:
+        before_v, before_w = v[watched], w[watched]
+        kernels.impulses.sweep_once(rows, inv_kn, inv_kt, first, second, normal, r_first, r_second, u_wall, target,
+                                    mu, inv_m, inv_i, v, w, lam_n, lam_t)
+        halo.merge(reference, v, w, split=split)
+        done += 1
+        if pending is not None:   # the test of the sweep before this one, reduced meanwhile
+            pending.Wait()
+            if largest[0] <= tol:
+                break
+        change = np.abs(v[watched] - before_v) + arm[watched, None] * np.abs(w[watched] - before_w)
+        largest = np.array([change.max(initial=0.0)])
+        pending = halo.comm.Iallreduce(MPI.IN_PLACE, largest, op=MPI.MAX)
+    if pending is not None:
+        pending.Wait()
+    return done
+
+
+def limit_energy(halo: Halo, owned_members, bodies, v0, w0, energy: float) -> float:
+    """Collective. ``impulses.limit_energy`` over the ranks: the velocity changes since (v0, w0)
+    scaled back by the largest s in [0, 1] that keeps the kinetic energy of the owned bodies, summed
+    over ranks, at ``energy``; returns s."""
+    inv_m, inv_i, v, w = bodies.inv_m, bodies.inv_i, bodies.v, bodies.w
+    k = owned_members[inv_m[owned_members] > 0]
+    m, i = 1.0 / inv_m[k], 1.0 / inv_i[k]
+    dv, dw = v[k] - v0[k], w[k] - w0[k]
+    terms = np.array([(m[:, None] * dv * v0[k]).sum() + (i[:, None] * dw * w0[k]).sum(),
+                      0.5 * ((m[:, None] * dv * dv).sum() + (i[:, None] * dw * dw).sum()),
+                      0.5 * ((m[:, None] * v[k] * v[k]).sum() + (i[:, None] * w[k] * w[k]).sum())])
+    halo.comm.Allreduce(MPI.IN_PLACE, terms, op=MPI.SUM)
+    a, b, after = terms
+    if after <= energy * (1 + ENERGY_TOL) + 1e-300:
+        return 1.0
+    s = min(1.0, -a / b) if b > 0 and a < 0 else 0.0
+    v[:] = v0 + s * (v - v0)
+    w[:] = w0 + s * (w - w0)
+    return s
+
+
+def deposit(halo: Halo, bodies, record, rows, r_first, deposition, kernels, counters) -> None:
+    """Collective. Deposition over this rank's contacts, then every rank's new deposits on their
+    owners and shadows alike (a particle deposited as another rank's ghost)."""
+    n = len(bodies.radius) - 1
+    changed = np.zeros(n + 1, np.int64)
+    before = bodies.deposited[:n].copy()
+    kernels.deposition.deposit_touching(rows, record.gap, r_first, bodies.kernel_tuple(),
+                                        (record.first, record.second, record.triangle), deposition, changed,
+                                        counters)
+    flags = (bodies.deposited[:n] & ~before).astype(np.int64)
+    counters[DEPOSITED] -= int(flags[~halo.owned].sum())     # counted by the owner
+    halo.to_owners(flags)
+    halo.to_ghosts(flags)
+    now = np.flatnonzero((flags > 0) & ~bodies.deposited[:n])
+    counters[DEPOSITED] += int(halo.owned[now].sum())
+    bodies.v[now] = bodies.w[now] = 0.0     # as deposition.deposit
+    bodies.inv_m[now] = bodies.inv_i[now] = 0.0
+    bodies.free[now], bodies.deposited[now] = False, True

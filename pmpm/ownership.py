@@ -1,0 +1,334 @@
+"""Particles owned by ranks: the spatial partition, migration, ghost copies, gathering for output.
+
+Without a flow (DEM-only runs) a particle belongs to the rank whose box holds its centre. The boxes
+are a recursive coordinate bisection of the *particles* (the mesh's own partition balances cells:
+in the hopper its cut lies above nearly every particle), planes cutting the longest extent of the
+particles in proportion to the ranks on each side, computed from histograms summed over ranks
+(no rank ever holds every particle), and computed again when the particle counts drift apart
+(``IMBALANCE``). The outer boxes reach to infinity, so every point has exactly one owner.
+
+Each rank holds its owned particles (sorted by id) and, during a contact step, ghost copies of the
+particles of other ranks within a given distance of its box (``Halo``): read-only copies whose
+velocity changes go back to their owners (``Halo.merge``). With a flow, every rank still holds every
+particle (ARCHITECTURE.md): the partition is not used.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, fields
+
+import numpy as np
+from mpi4py import MPI
+
+from .particles import ParticleState
+
+MAX_HOLDERS = 16       # the most ranks that may hold one particle (its owner and its ghosts')
+IMBALANCE = 1.15        # the boxes are bisected again when a rank owns this × the mean number of particles
+BINS, ROUNDS = 64, 3    # a cut is placed by ROUNDS histograms of BINS bins (to 1/64³ of the particles' extent)
+PARTICLE_FIELDS = tuple(f.name for f in fields(ParticleState))
+
+
+@dataclass(frozen=True)
+class Partition:
+    """Each rank's box, [lower, upper) per axis (m); the outer sides at ±inf. (ranks, 3) each."""
+
+    lower: np.ndarray
+    upper: np.ndarray
+
+    @classmethod
+    def whole(cls, ranks: int = 1) -> "Partition":
+        """Every point on rank 0 (the boxes of the other ranks empty)."""
+        lower, upper = np.full((ranks, 3), np.inf), np.full((ranks, 3), np.inf)
+        lower[0], upper[0] = -np.inf, np.inf
+        return cls(lower, upper)
+
+    def owner_of(self, x: np.ndarray) -> np.ndarray:
+        """(n,) int64, the rank whose box holds each point (n, 3); 0 for a point that is not finite."""
+        inside = ((x[:, None, :] >= self.lower[None]) & (x[:, None, :] < self.upper[None])).all(axis=2)
+        return np.argmax(inside, axis=1).astype(np.int64)
+
+    def distance(self, x: np.ndarray) -> np.ndarray:
+        """(n, ranks) distance (m) from each point to each rank's box (0 inside)."""
+        below = np.maximum(self.lower[None] - x[:, None, :], 0.0)
+        above = np.maximum(x[:, None, :] - self.upper[None], 0.0)
+        return np.sqrt(((np.nan_to_num(below) + np.nan_to_num(above)) ** 2).sum(axis=2))
+
+    def to_array(self) -> np.ndarray:
+        return np.stack([self.lower, self.upper])
+
+    @classmethod
+    def from_array(cls, array: np.ndarray) -> "Partition":
+        return cls(np.array(array[0], float), np.array(array[1], float))
+
+
+def bisect(comm, x: np.ndarray, domain: tuple | None = None) -> Partition:
+    """Collective. Boxes that share the particles (centres ``x``, this rank's, (n, 3)) evenly among
+    the ranks: each box with several ranks is cut across the longest extent of its particles, at
+    the share of its ranks on the lower side, level by level (one set of reductions per level). A
+    box without particles is cut across the middle of its part of ``domain`` ((lower, upper) (3,)
+    each, m; the domain's bounding box), or at 0 without one."""
+    ranks = comm.size
+    nodes = [(np.full(3, -np.inf), np.full(3, np.inf), 0, ranks)]   # (lower, upper, first rank, ranks)
+    while any(count > 1 for *_, count in nodes):
+        split = [k for k, node in enumerate(nodes) if node[3] > 1]
+        lower = np.array([nodes[k][0] for k in split])
+        upper = np.array([nodes[k][1] for k in split])
+        inside = ((x[:, None, :] >= lower[None]) & (x[:, None, :] < upper[None])).all(axis=2)
+        node = np.where(inside.any(axis=1), np.argmax(inside, axis=1), -1)
+        held = node >= 0
+        low = np.full((len(split), 3), np.inf)
+        high = np.full((len(split), 3), -np.inf)
+        np.minimum.at(low, node[held], x[held])
+        np.maximum.at(high, node[held], x[held])
+        bounds = np.concatenate([low, -high], axis=1)
+        comm.Allreduce(MPI.IN_PLACE, bounds, op=MPI.MIN)
+        low, high = bounds[:, :3], -bounds[:, 3:]
+        empty = ~np.isfinite(low).all(axis=1)
+        low[empty], high[empty] = 0.0, 0.0
+        if domain is not None:   # (the domain's part in the box)
+            low[empty] = np.clip(domain[0], lower[empty], upper[empty])
+            high[empty] = np.clip(domain[1], lower[empty], upper[empty])
+        axis = np.argmax(high - low, axis=1)
+        share = np.array([(nodes[k][3] // 2) / nodes[k][3] for k in split])
+        coordinate = np.where(held, x[np.arange(len(x)), axis[np.maximum(node, 0)]] if len(x) else 0.0, 0.0)
+        cut = quantile_cut(comm, coordinate, node, low[np.arange(len(split)), axis],
+                           high[np.arange(len(split)), axis], share)
+        children = []
+        for k, (lo, hi, first, count) in enumerate(nodes):
+            if count == 1:
+                children.append(nodes[k])
+                continue
+            s = split.index(k)
+            left = count // 2
+            upper_left, lower_right = hi.copy(), lo.copy()
+            upper_left[axis[s]] = lower_right[axis[s]] = np.clip(cut[s], lo[axis[s]], hi[axis[s]])
+            children += [(lo, upper_left, first, left), (lower_right, hi, first + left, count - left)]
+        nodes = children
+    nodes.sort(key=lambda node: node[2])
+    return Partition(np.array([node[0] for node in nodes]), np.array([node[1] for node in nodes]))
+
+
+def quantile_cut(comm, coordinate: np.ndarray, node: np.ndarray, low: np.ndarray, high: np.ndarray,
+                 share: np.ndarray) -> np.ndarray:
+    """Collective. Per node, a coordinate below which ``share`` of its particles lie (``coordinate``
+    and ``node`` per particle, node −1: in none), narrowed by ROUNDS histograms summed over ranks;
+    the midpoint of [low, high] for a node without particles."""
+    nodes = len(low)
+    held = node >= 0
+    lo, hi = low.astype(float).copy(), high.astype(float).copy()
+    below = np.zeros(nodes)                       # particles below lo, per node
+    total = np.bincount(node[held], minlength=nodes).astype(float)
+    comm.Allreduce(MPI.IN_PLACE, total, op=MPI.SUM)
+    target = share * total
+    for _ in range(ROUNDS):
+        width = np.maximum(hi - lo, 1e-300)
+        b = np.floor((coordinate[held] - lo[node[held]]) / width[node[held]] * BINS).astype(np.int64)
+        inside = (b >= 0) & (b < BINS)
+        counts = np.bincount(node[held][inside] * BINS + b[inside], minlength=nodes * BINS).astype(float)
+        comm.Allreduce(MPI.IN_PLACE, counts, op=MPI.SUM)
+        running = below[:, None] + np.cumsum(counts.reshape(nodes, BINS), axis=1)
+        k = np.minimum((running < target[:, None]).sum(axis=1), BINS - 1)   # the bin where the share is reached
+        below = np.where(k > 0, running[np.arange(nodes), np.maximum(k - 1, 0)], below)
+        lo, hi = lo + width * k / BINS, lo + width * (k + 1) / BINS
+    return np.where(total > 0, hi, 0.5 * (low + high))
+
+
+# ----------------------------------------------------------------------------------------------
+# Moving rows between ranks
+# ----------------------------------------------------------------------------------------------
+def exchange_rows(comm, destination: np.ndarray, arrays: dict) -> dict:
+    """Collective. Send row i of every array to rank ``destination[i]`` (−1: nowhere); returns the
+    rows received from all ranks, in rank order, as a dict of arrays like ``arrays``."""
+    return exchange_groups(comm, [(destination, arrays)])[0]
+
+
+def exchange_groups(comm, groups: list) -> list[dict]:
+    """Collective. ``exchange_rows`` of several groups (destination, arrays) of rows in one
+    exchange; rows whose destination is this rank stay, without a message, ahead of those received."""
+    outgoing = [[] for _ in range(comm.size)]
+    for destination, arrays in groups:
+        order = np.argsort(destination, kind="stable")
+        ranks = destination[order]
+        edges = np.searchsorted(ranks, np.arange(comm.size + 1))
+        for r in range(comm.size):
+            rows = order[edges[r]:edges[r + 1]]
+            outgoing[r].append({name: values[rows] for name, values in arrays.items()} if len(rows) else None)
+    staying = outgoing[comm.rank]
+    outgoing[comm.rank] = None
+    outgoing = [None if parts is None or all(part is None for part in parts) else parts for parts in outgoing]
+    incoming = [parts for parts in comm.alltoall(outgoing) if parts is not None]
+    result = []
+    for g, (_, arrays) in enumerate(groups):
+        parts = [staying[g]] + [parts[g] for parts in incoming]
+        result.append({name: np.concatenate([values[:0]] + [part[name] for part in parts if part is not None])
+                       for name, values in arrays.items()})
+    return result
+
+
+def particle_rows(particles: ParticleState, rows: np.ndarray | slice = slice(None)) -> dict:
+    return {name: getattr(particles, name)[rows] for name in PARTICLE_FIELDS}
+
+
+def particles_of(rows: dict) -> ParticleState:
+    """A ``ParticleState`` of the rows (dict of its fields), sorted by id."""
+    order = np.argsort(rows["id"], kind="stable")
+    return ParticleState(**{name: np.asarray(rows[name])[order] for name in PARTICLE_FIELDS})
+
+
+def gather(comm, particles: ParticleState) -> ParticleState:
+    """Collective. Every rank's particles on every rank, sorted by id (for output and checkpoints)."""
+    if comm.size == 1:
+        return particles
+    parts = comm.allgather(particle_rows(particles))
+    return particles_of({name: np.concatenate([part[name] for part in parts]) for name in PARTICLE_FIELDS})
+
+
+# ----------------------------------------------------------------------------------------------
+# Ghost copies
+# ----------------------------------------------------------------------------------------------
+@dataclass
+class Halo:
+    """The ghost copies of one contact step on this rank (local rows: owned and ghost particles
+    together, sorted by id).
+
+    owned : (n_local,) bool; send : per neighbour rank, the local rows of owned particles it holds
+    as ghosts; receive : per neighbour rank, the local rows of its particles held here; shared :
+    per rank, the local rows of the particles both hold (owned or ghost on either), by id.
+
+    Notes
+    -----
+    ``to_ghosts`` copies owners' rows to their ghosts, ``to_owners`` adds the ghosts' rows to their
+    owners' (and zeroes them): one message each way per neighbour, none between ranks that share
+    no ghost. ``merge`` takes one message each way between ranks that hold a particle together:
+    each holder sends its change to the others, and all add the changes in rank order.
+    """
+
+    comm: object
+    owned: np.ndarray
+    send: dict
+    receive: dict
+    shared: dict
+    sent: int = 0          # bytes this rank has sent, the ghosts included
+
+    @classmethod
+    def build(cls, comm, partition: Partition, particles: ParticleState, width: np.ndarray | float):
+        """Collective. The ghosts of every rank's ``particles`` (owned), sent to each rank whose box
+        lies within ``width`` (m; per particle, or one value) of the centre. Returns the halo and
+        the local particles (owned and ghosts, sorted by id)."""
+        width = np.broadcast_to(np.asarray(width, float), (len(particles),))
+        lower, upper = partition.lower[comm.rank], partition.upper[comm.rank]
+        edge = np.minimum(particles.x - lower, upper - particles.x).min(axis=1, initial=np.inf) \
+            if len(particles) else np.zeros(0)
+        near = np.flatnonzero(edge < width)
+        reach = partition.distance(particles.x[near]) < width[near, None]
+        reach[:, comm.rank] = False
+        row, rank = np.nonzero(reach)
+        sources = near[row]
+        holders = np.full((len(near), MAX_HOLDERS), -1, np.int32)   # every rank holding the particle
+        count = reach.sum(axis=1)
+        if len(near) and count.max() >= MAX_HOLDERS:
+            raise RuntimeError(f"a particle is within contact range of {count.max() + 1} ranks' boxes; at most "
+                               f"{MAX_HOLDERS} are supported (fewer ranks, or larger boxes)")
+        holders[row, np.arange(len(row)) - np.searchsorted(row, row)] = rank
+        holders[np.arange(len(near)), count] = comm.rank
+        rows = {**particle_rows(particles, sources), "holders": holders[row]}
+        arrived = exchange_rows(comm, rank, {**rows, "from": np.full(len(sources), comm.rank)})
+        n_owned = len(particles)
+        joined = {name: np.concatenate([getattr(particles, name), arrived[name]]) for name in PARTICLE_FIELDS}
+        order = np.argsort(joined["id"], kind="stable")
+        local = ParticleState(**{name: joined[name][order] for name in PARTICLE_FIELDS})
+        where = np.empty(len(order), np.int64)
+        where[order] = np.arange(len(order))                 # joined row → local row
+        owned = np.zeros(len(order), bool)
+        owned[where[:n_owned]] = True
+        send = {int(r): where[sources[rank == r]] for r in np.unique(rank)}   # in the order sent
+        ghost_rows = where[n_owned:]
+        receive = {int(r): ghost_rows[arrived["from"] == r] for r in np.unique(arrived["from"])}
+        # who holds what together: an owned particle with the ranks it went to, a ghost with its holders
+        local_row = np.concatenate([np.repeat(where[near], MAX_HOLDERS), np.repeat(ghost_rows, MAX_HOLDERS)])
+        other = np.concatenate([holders.ravel(), arrived["holders"].ravel()])
+        keep = (other >= 0) & (other != comm.rank)
+        local_row, other = local_row[keep], other[keep]
+        pairs = np.lexsort((local_row, other))
+        shared = {int(r): local_row[pairs][other[pairs] == r] for r in np.unique(other)}
+        sent = sum(values.nbytes for values in rows.values())
+        return cls(comm, owned, send, receive, shared, sent), local
+
+    def _swap(self, outgoing: dict, incoming: dict, array: np.ndarray, combine) -> None:
+        """Send array[outgoing[r]] to each r; each received block goes to array[incoming[r]] by ``combine``."""
+        shape = array.shape[1:]
+        requests, buffers = [], {}
+        for r, rows in incoming.items():
+            buffers[r] = np.empty((len(rows),) + shape, array.dtype)
+            requests.append(self.comm.Irecv(buffers[r], source=r, tag=77))
+        blocks = [np.ascontiguousarray(array[rows]) for rows in outgoing.values()]
+        requests += [self.comm.Isend(block, dest=r, tag=77) for r, block in zip(outgoing, blocks)]
+        self.sent += sum(block.nbytes for block in blocks)
+        MPI.Request.Waitall(requests)
+        for r, rows in incoming.items():
+            combine(array, rows, buffers[r])
+
+    def to_ghosts(self, *arrays: np.ndarray) -> None:
+        """Collective. Each ghost row takes its owner's value, in place."""
+        for array in arrays:
+            self._swap(self.send, self.receive, array, _assign)
+
+    def to_owners(self, *arrays: np.ndarray) -> None:
+        """Collective. Each ghost row is added to its owner's row and set to zero, in place."""
+        for array in arrays:
+            self._swap(self.receive, self.send, array, np.add.at)
+            for rows in self.receive.values():
+                array[rows] = 0
+
+    def holders(self, touching: np.ndarray) -> np.ndarray:
+        """Collective. (n_local,) for each particle, how many of the ranks holding it have ``touching``
+        (bool per local row) true for it, this one included; 1 where none has."""
+        count = touching.astype(float)[:, None]
+        self.merge((np.zeros_like(count),), count)
+        return np.maximum(np.rint(count[:, 0]), 1.0)
+
+    def merge(self, reference: tuple, *arrays: np.ndarray, split: np.ndarray | None = None) -> None:
+        """Collective. Copies of particles changed by the ranks that hold them: each holder's change
+        since ``reference`` (the arrays as they were at the last merge, the same on every holder) is
+        sent to the other holders, and every holder sets reference + the changes of all, added in
+        rank order (so the copies stay equal to the bit); the reference arrays take the merged
+        values. Rows held here only are left as they are. The block Gauss–Seidel's exchange per sweep.
+
+        ``split`` (n_local,): the number of holders each particle's mass is split among (mass
+        splitting, Tonge et al. 2012): each holder's copy had 1/split of the mass, and the merged
+        value is reference + the mean of the changes (so still reference + Σ impulses / mass)."""
+        n = len(self.owned)
+        if not self.shared:
+            for array, before in zip(arrays, reference):
+                before[:n] = array[:n]
+            return
+        now = np.hstack([array[:n].reshape(n, -1) for array in arrays])  # (rows past the particles: the world)
+        then = np.hstack([before[:n].reshape(n, -1) for before in reference])
+        change = now - then
+        received = {}
+        requests = []
+        for r, rows in self.shared.items():
+            received[r] = np.empty((len(rows), now.shape[1]))
+            requests.append(self.comm.Irecv(received[r], source=r, tag=78))
+        outgoing = [np.ascontiguousarray(change[rows]) for rows in self.shared.values()]
+        requests += [self.comm.Isend(block, dest=r, tag=78) for r, block in zip(self.shared, outgoing)]
+        self.sent += sum(block.nbytes for block in outgoing)
+        MPI.Request.Waitall(requests)
+        rows = np.unique(np.concatenate(list(self.shared.values())))
+        total = np.zeros_like(now)
+        for r in sorted([*self.shared, self.comm.rank]):
+            if r == self.comm.rank:
+                total[rows] += change[rows]
+            else:
+                total[self.shared[r]] += received[r]
+        if split is not None:
+            total[rows] /= split[rows, None]
+        now[rows] = then[rows] + total[rows]
+        column = 0
+        for array, before in zip(arrays, reference):
+            width = array[:n].reshape(n, -1).shape[1]
+            array[:n] = before[:n] = now[:, column:column + width].reshape(array[:n].shape)
+            column += width
+
+
+def _assign(array, rows, values):
+    array[rows] = values
