@@ -83,11 +83,19 @@ def build_model(comm, case: Case, mesh: Mesh) -> Model:
     bodies = build_bodies(case)
     if case.fluid is not None:
         flow = FlowSolver(mesh, case.fluid, case.boundaries)
-        forcing = build_forcing(mesh, case.coupling, case.fluid)
+        corrected = case.coupling.drag_correction != "off"
+        forcing = build_forcing(mesh, case.coupling, case.fluid, largest_diameter(case) if corrected else 0.0)
         if bodies:
             body_forcing = BodyForcing(mesh, bodies, case.coupling, case.fluid.density, case.fluid.viscosity)
     return Model(comm, case, mesh, flow, forcing, build_injectors(case),
                  collision_settings(case) if case.collisions else None, bodies, body_forcing)
+
+
+def largest_diameter(case: Case) -> float:
+    """The largest particle diameter (m) among the case's particles and injections (0 if none)."""
+    radii = [float(initial_particles(case).radius.max(initial=0.0))]
+    radii += [injection.radius for injection in case.injections]
+    return 2.0 * max(radii)
 
 
 def initial_state(model: Model) -> RunState:

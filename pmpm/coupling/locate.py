@@ -61,6 +61,7 @@ class CellLocator:
         corners = mesh.vertex_xyz[owned_vertices]
         self.cell_diameter = float(np.linalg.norm(corners.max(axis=1) - corners.min(axis=1), axis=1).max(initial=0))
         self.h2 = mesh.cell_volume[:n_owned] ** (2 / 3)     # squared cell size h²
+        self.cell_reach = np.linalg.norm(corners - mesh.cell_center[:n_owned, None, :], axis=2).max(axis=1, initial=0)
         self.samples = reference_samples(mesh.cell_type, subcell_points) if rule == "subcell" else None
 
     def locate(self, state: ParticleState) -> Touched:
@@ -99,19 +100,21 @@ class CellLocator:
         return (np.einsum("mvd,mvd->mv", gap, gap) <= state.radius[particle, None] ** 2).mean(axis=1)
 
     def sampled_fraction(self, state, particle, cell) -> np.ndarray:
-        """Share of the cell's k³ sample points inside the sphere, per (particle, cell) pair."""
-        corners = self.mesh.vertex_xyz[self.mesh.cell_vertices[cell]]            # (m, nv, 3)
-        gap = corners - state.x[particle, None, :]
-        vertex_inside = np.einsum("mvd,mvd->mv", gap, gap) <= state.radius[particle, None] ** 2
-        # a convex cell with every vertex inside the (convex) sphere lies inside it: α = 1, no sampling
-        alpha = vertex_inside.all(axis=1).astype(float)
-        cut = np.flatnonzero(alpha < 1)
+        """Share of the cell's k³ sample points inside the sphere, per (particle, cell) pair. Only the
+        cells the surface may cut are sampled: a convex cell with every vertex inside the (convex)
+        sphere lies inside it (α = 1), one whose centre lies farther than the radius plus the cell's
+        reach (its centre's largest distance to a vertex) lies outside (α = 0)."""
+        gap = self.mesh.vertex_xyz[self.mesh.cell_vertices[cell]] - state.x[particle, None, :]   # (m, nv, 3)
+        radius2 = state.radius[particle] ** 2
+        alpha = (np.einsum("mvd,mvd->mv", gap, gap) <= radius2[:, None]).all(axis=1).astype(float)
+        centre = self.mesh.cell_center[cell] - state.x[particle]
+        distance = np.sqrt(np.einsum("md,md->m", centre, centre))
+        cut = np.flatnonzero((alpha < 1) & (distance < state.radius[particle] + self.cell_reach[cell]))
         chunk = max(1, 2_000_000 // max(1, len(self.samples)))
         for start in range(0, len(cut), chunk):
             part = cut[start:start + chunk]
-            points = np.einsum("sv,mvd->msd", self.samples, corners[part])     # (m, k³, 3)
-            gap = points - state.x[particle[part], None, :]
-            inside = np.einsum("msd,msd->ms", gap, gap) <= state.radius[particle[part], None] ** 2
+            points = np.matmul(self.samples, gap[part])      # (m, k³, 3) from the centre (weights sum to 1)
+            inside = np.einsum("msd,msd->ms", points, points) <= radius2[part, None]
             alpha[part] = inside.mean(axis=1)
         return alpha
 

@@ -56,6 +56,7 @@ class PenaltyPasses:
     solved_v, solved_omega : (n, 3) the motion the last solve drove it towards
     exchanged : (n, 6) J of the last solve; response, response_spin : (n,) the cells' response M_c;
     exchange_weight : (m,) ρ V × the rate of the exchange per pair (J = Σ weight (u − U))
+    correction : (n,) the drag correction's extra rate κ_x of each particle this step (None: off)
     """
 
     touched: Touched
@@ -71,6 +72,7 @@ class PenaltyPasses:
     response: np.ndarray | None = None
     response_spin: np.ndarray | None = None
     exchange_weight: np.ndarray | None = None
+    correction: np.ndarray | None = None
 
 
 class PenaltyForcing:
@@ -82,9 +84,10 @@ class PenaltyForcing:
     section : the case's [coupling] section
     fluid_density : ρ_f (kg/m³)
     viscosity : μ (Pa s)
+    correction : the drag correction for under-resolved particles (``correction.DragCorrection``), or None
     """
 
-    def __init__(self, mesh, section, fluid_density: float, viscosity: float):
+    def __init__(self, mesh, section, fluid_density: float, viscosity: float, correction=None):
         self.mesh, self.comm = mesh, mesh.comm
         self.locator = CellLocator(mesh, section.volume_fraction, int(section.subcell_points), smooth_reach=True)
         self.rho = float(fluid_density)
@@ -92,6 +95,7 @@ class PenaltyForcing:
         self.two_way = section.mode == "two-way"
         self.explicit = section.update == "explicit"
         self.strength = float(section.penalty_strength)
+        self.correction = correction
 
     def locate(self, state: ParticleState) -> Touched:
         """Local. This rank's touched cells and volume fractions."""
@@ -108,6 +112,11 @@ class PenaltyForcing:
         thrust. "Under" weighs each cell by a smooth fraction, not α, whose jumps as sample points
         cross the surface made light particles ring. The flow is returned as it came."""
         kappa = self.penalty_rates(touched, self.relative_speed(state, touched, fluid.u))
+        correction = None
+        if self.correction is not None:   # the extra rate acts on the fluid share of the particle's cells
+            correction = self.correction.rates(state, memory)
+            total = alpha_per_cell(touched, self.mesh.n_owned_cells)[touched.cell]
+            kappa = kappa + correction[touched.particle] * (1.0 - np.minimum(total, 1.0))
         under_mass = self.rho * smooth_fraction(self.mesh, self.locator.h2, state, touched) \
             * self.mesh.cell_volume[touched.cell]
         internal_start, under_scale = self.fluid_under(state, touched, fluid.u, under_mass)
@@ -119,7 +128,8 @@ class PenaltyForcing:
             # its moment about where the centre is now: L' = L − (x' − x) × P
             start[:, 3:] -= np.cross(state.x[same] - centre[position[same]], start[:, :3])
             internal_start[same] = start
-        return PenaltyPasses(touched, kappa, under_mass, under_scale, internal_start, state.v, state.omega), fluid
+        return PenaltyPasses(touched, kappa, under_mass, under_scale, internal_start, state.v, state.omega,
+                             correction=correction), fluid
 
     def penalty_rates(self, touched: Touched, speed: np.ndarray) -> np.ndarray:
         """κ (1/s) of each (particle, cell) pair, from the cell's total volume fraction α, shared among
@@ -231,11 +241,38 @@ class PenaltyForcing:
         force, torque = hydrodynamic_force(state, external, dv, dw, impulse, dt)
         memory = replace(memory, under_id=state.id[order], under_momentum=internal_end[order],
                          under_centre=state.x[order])
+        if self.correction is not None:
+            v = np.where(state.movable[:, None], state.v + dv, state.v)
+            memory = replace(memory, correction_rate=self.corrected_rates(state, passes, fluid.u, v, force, dt, memory))
         if self.explicit:
             last_change, ringing = watch_ringing(state, np.where(state.movable[:, None], dv, 0.0), memory.last_change,
                                                  memory.ringing, self.rho, step, time)
             memory = replace(memory, last_change=last_change, ringing=ringing)
         return Exchange(fluid, force, torque, memory)
+
+    def corrected_rates(self, state: ParticleState, passes: PenaltyPasses, u: np.ndarray, v: np.ndarray,
+                        force: np.ndarray, dt: float, memory: CouplingMemory) -> np.ndarray:
+        """Collective. The drag correction's κ_x per filter bin (n_bins,) for the next step, from the correlation's force at
+        the local voidage and slip (particle velocities ``v`` (n, 3) at the step's end, flow ``u``), the
+        drag ``force`` (n, 3) felt this step, and the force per unit κ_x in the particle's cells: the
+        fluid share (1 − α) of each, its velocity relative to the particle, damped by the cell's own
+        implicit response 1/(1 + κ dt)."""
+        touched, n_owned = passes.touched, self.mesh.n_owned_cells
+        p, c = touched.particle, touched.cell
+        alpha = alpha_per_cell(touched, n_owned)
+        rigid = passes.solved_v[p] + np.cross(passes.solved_omega[p], self.mesh.cell_center[c] - state.x[p])
+        solid = np.stack([np.bincount(c, touched.alpha * rigid[:, d], minlength=n_owned) for d in range(3)], axis=1)
+        eps, superficial, voidage = self.correction.slip(state, u, alpha, solid, v)
+        target, direction = self.correction.target(state, eps, superficial)
+        target *= np.minimum(1.0, 1.0 / passes.under_scale)    # the share of a sphere cut by a symmetry plane
+        kappa_cell = np.bincount(c, passes.kappa, minlength=n_owned)[c]
+        along = np.einsum("ij,ij->i", u[c] - rigid, direction[p])
+        share = self.rho * self.mesh.cell_volume[c] * (1.0 - np.minimum(alpha[c], 1.0)) * along / (1 + kappa_cell * dt)
+        sensitivity = np.bincount(p, share, minlength=len(state))
+        if self.comm.size > 1:
+            self.comm.Allreduce(MPI.IN_PLACE, sensitivity, op=MPI.SUM)
+        rate = memory.correction_rate if memory.correction_rate is not None else np.zeros(self.correction.bins.n_bins)
+        return self.correction.update(state, rate, voidage, target, direction, force, sensitivity, dt)
 
     def fluid_under(self, state: ParticleState, touched: Touched, u: np.ndarray, mass: np.ndarray,
                     x: np.ndarray | None = None, extra: np.ndarray | None = None):

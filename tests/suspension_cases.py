@@ -1,0 +1,136 @@
+"""Dense-suspension cases shared by tests/test_suspensions.py and bench/suspensions.py: a fixed
+random packed bed in a column (Ergun), and a liquid-fluidized bed resting on its inlet (Wen & Yu,
+Richardson & Zaki)."""
+from __future__ import annotations
+
+import time as wallclock
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+from mpi4py import MPI
+
+from pmpm.case import load_case
+from pmpm.injection import NewParticles
+from pmpm.mesh import Mesh
+from pmpm.packing import random_packing, solid_fraction
+from pmpm.particles import FIXED, FREE
+from pmpm.simulation import Simulation, add_particles
+
+COLUMN = """
+[run]
+end_time = 100.0
+dt = {dt}
+gravity = {gravity}
+[mesh]
+box = {{ lower = [0, 0, 0], upper = [{width}, {width}, {height}], cells = [{n}, {n}, {m}] }}
+[fluid]
+density = {rho_f}
+viscosity = {mu}
+[boundary.zmin]
+type = "inlet"
+velocity = [0.0, 0.0, {speed}]
+[boundary.zmax]
+type = "outlet"
+{sides}
+[coupling]
+volume_fraction = "{rule}"
+forcing_passes = {passes}
+{coupling}
+{collisions}
+"""
+SIDES = "".join(f'[boundary.{b}]\ntype = "symmetry"\n' for b in ("xmin", "xmax", "ymin", "ymax"))
+
+
+def column(comm, folder: Path, width: float, height: float, cells: tuple[int, int], dt: float, speed: float,
+           density: float, viscosity: float, rule: str = "subcell", passes: int = 1, gravity=(0.0, 0.0, 0.0),
+           coupling: dict | None = None, collisions: str = "") -> Simulation:
+    """Collective. A square column ``width`` × ``width`` × ``height`` (m), ``cells`` = (across, up),
+    symmetry sides, a uniform inlet of ``speed`` (m/s) at the bottom and an outlet on top, no
+    particles yet; the flow starts uniform at the inlet's speed. ``coupling``: more [coupling] keys."""
+    extra = "".join(f"{key} = {value!r}\n".replace("'", '"') for key, value in (coupling or {}).items())
+    text = COLUMN.format(dt=dt, gravity=list(gravity), width=width, height=height, n=cells[0], m=cells[1],
+                         rho_f=density, mu=viscosity, speed=speed, sides=SIDES, rule=rule, passes=passes,
+                         coupling=extra, collisions=collisions)
+    path = folder / f"column_{comm.size}_{comm.rank}.toml"
+    path.write_text(text)
+    case = load_case(path, [])
+    mesh = Mesh.from_box(comm, case.box.lower, case.box.upper, case.box.cells, case.mesh.cell_type)
+    sim = Simulation(comm, case, mesh, quiet=True)
+    flow, state = sim.flow, sim.fluid_state
+    state.u[:, 2] = speed
+    state.flux[:flow.n_interior] = speed * flow.S[:, 2]
+    state.flux[flow.n_interior:] = speed * flow.S_b[:, 2]
+    return sim
+
+
+def with_particles(sim: Simulation, x: np.ndarray, radius: float, density: float, motion: int) -> Simulation:
+    """Collective. ``sim`` with spheres at ``x`` (n, 3), at rest."""
+    n = len(x)
+    new = NewParticles(x, np.zeros((n, 3)), np.zeros((n, 3)), np.full(n, radius), np.full(n, density),
+                       np.full(n, motion, np.int8))
+    state = add_particles(sim.model, sim.state, new)
+    sim.state = replace(state, fresh_from=state.next_id)    # present from the start: no displaced volume
+    return sim
+
+
+def ergun_pressure_gradient(mesh, fluid, volume_fraction, z_low: float, z_high: float, comm) -> float:
+    """Collective. −dp/dz (Pa/m) between the heights ``z_low`` and ``z_high``: the least-squares slope of
+    the fluid-weighted mean pressure of each layer of cells whose centres lie between them."""
+    owned = slice(0, mesh.n_owned_cells)
+    z = mesh.cell_center[owned, 2]
+    weight = mesh.cell_volume[owned] * (1.0 - volume_fraction[owned])
+    inside = (z > z_low) & (z < z_high)
+    heights = np.round(z, 9)
+    levels = np.unique(np.concatenate(comm.allgather(np.unique(heights[inside]))))
+    index = np.searchsorted(levels, heights[inside])
+    sums = np.zeros((2, len(levels)))
+    sums[0] = np.bincount(index, weight[inside] * fluid.p[owned][inside], minlength=len(levels))
+    sums[1] = np.bincount(index, weight[inside], minlength=len(levels))
+    comm.Allreduce(MPI.IN_PLACE, sums, op=MPI.SUM)
+    slope = np.polyfit(levels, sums[0] / sums[1], 1)[0]
+    return -float(slope)
+
+
+def packed_bed(comm, folder: Path, cells_per_diameter: int, reynolds: float, diameter: float = 0.003,
+               width: float = 6.0, bed: float = 8.0, margin: float = 2.0, porosity_section: float = 2.0,
+               count: int | None = None, seed: int = 1, rule: str = "subcell", cfl: float = 0.3,
+               diffusion_number: float = 0.4, flow_times: float = 3.0, min_steps: int = 40,
+               coupling: dict | None = None, density: float = 1000.0, viscosity: float = 1e-3) -> dict:
+    """Collective. A fixed random packing of spheres (``pmpm.packing.random_packing``, mirror sides)
+    ``bed`` diameters tall in a column ``width`` diameters wide with symmetry sides, ``margin``
+    diameters of empty column below (the inlet) and above (the outlet); a stream at the particle
+    Reynolds number ``reynolds`` = ρ U d/μ (U superficial). The pressure gradient is measured over
+    the bed less ``porosity_section`` diameters at each end, the voidage ε there exactly (on a fine
+    lattice). The step is the smaller of ``cfl`` h/(U/ε) and ``diffusion_number`` h²/ν; the run
+    lasts ``flow_times`` passages of the bed at the interstitial speed U/ε, or ``min_steps``.
+
+    Returns a dict: reynolds, porosity, gradient (−dp/dz, Pa/m), its history per step, steps,
+    cells, particles, seconds (wall, this run's steps)."""
+    d = diameter
+    h = d / cells_per_diameter
+    n_across, n_up = int(round(width * cells_per_diameter)), int(round((bed + 2 * margin) * cells_per_diameter))
+    w, total = n_across * h, n_up * h
+    lower, upper = np.array([0.0, 0.0, margin * d]), np.array([w, w, (margin + bed) * d])
+    count = count if count is not None else int(round(0.72 * w * w * bed * d / (np.pi / 6 * d ** 3)))
+    x = comm.bcast(random_packing(count, lower, upper, d / 2, mirrors=(True, True, False), seed=seed)
+                   if comm.rank == 0 else None)
+    x[:, :2] = np.clip(x[:, :2], 1e-6 * d, w - 1e-6 * d)     # centres inside the domain
+    z_low, z_high = (margin + porosity_section) * d, (margin + bed - porosity_section) * d
+    porosity = 1.0 - comm.bcast(solid_fraction(x, d / 2, [0, 0, z_low], [w, w, z_high]) if comm.rank == 0 else None)
+    nu = viscosity / density
+    speed = reynolds * nu / d
+    dt = min(cfl * h * porosity / speed, diffusion_number * h * h / nu)
+    sim = column(comm, folder, w, total, (n_across, n_up), dt, speed, density, viscosity, rule=rule, coupling=coupling)
+    with_particles(sim, x, d / 2, 2500.0, FIXED)
+    steps = max(min_steps, int(np.ceil(flow_times * bed * d / (speed / porosity) / dt)))
+    history = np.empty(steps)
+    start = wallclock.perf_counter()
+    for i in range(steps):
+        sim.advance(dt)
+        history[i] = ergun_pressure_gradient(sim.mesh, sim.fluid_state, sim.state.volume_fraction, z_low, z_high,
+                                             comm)
+    seconds = wallclock.perf_counter() - start
+    return dict(reynolds=reynolds, porosity=porosity, gradient=float(history[-max(1, steps // 5):].mean()),
+                history=history, steps=steps, cells=sim.mesh.n_global_cells, particles=count, seconds=seconds,
+                speed=speed, diameter=d, density=density, viscosity=viscosity, dt=dt)
