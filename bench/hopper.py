@@ -1,6 +1,7 @@
 """DEM-only hopper discharge (no flow), pmpm against LIGGGHTS on the same work.
 
-    OMP_NUM_THREADS=1 .venv/bin/python bench/hopper.py [N [SIM_TIME [DT]]]   # 10000 particles, 1.0 s, 2e-3 s
+    OMP_NUM_THREADS=1 .venv/bin/python bench/hopper.py [N [SIM_TIME [DT]]] [--ranks 1,2] [--no-peer]
+    # defaults: 10000 particles, 1.0 s, 2e-3 s, 1 and 2 ranks, LIGGGHTS too
 
 The peer's geometry and particles (../shared/peers/liggghts_hopper.sh): conical hopper, orifice
 D0 = 30 mm, spheres d = 4 mm, ρ = 2500, restitution 0.9, friction 0.3. As the peer does, the
@@ -70,6 +71,13 @@ def pmpm(folder, ranks, restart=None, **values):
     return seconds, json.loads((out / "summary.json").read_text()), out
 
 
+def carries_counts(checkpoint) -> bool:
+    """Whether a restart from ``checkpoint`` continues the run's collision counts."""
+    import h5py
+    with h5py.File(checkpoint, "r") as f:
+        return "collisions" in f.attrs
+
+
 def steady_rate(csv, start) -> float:
     """Particles leaving per second from the output time nearest ``start`` to the last one
     (Beverloo's law holds past the start-up of the discharge)."""
@@ -81,9 +89,13 @@ def steady_rate(csv, start) -> float:
 
 
 def main():
-    count = int(sys.argv[1]) if len(sys.argv) > 1 else 10000
-    sim_time = float(sys.argv[2]) if len(sys.argv) > 2 else 1.0
-    dt = float(sys.argv[3]) if len(sys.argv) > 3 else 2e-3
+    args = [a for a in sys.argv[1:] if not a.startswith("--")]
+    options = sys.argv[1:]
+    rank_counts = [int(n) for n in options[options.index("--ranks") + 1].split(",")] if "--ranks" in options else [1, 2]
+    args = [a for a in args if not ("--ranks" in options and a == options[options.index("--ranks") + 1])]
+    count = int(args[0]) if len(args) > 0 else 10000
+    sim_time = float(args[1]) if len(args) > 1 else 1.0
+    dt = float(args[2]) if len(args) > 2 else 2e-3
     import meshio
     folder = Path(tempfile.mkdtemp(prefix="pmpm_hopper_"))
     meshio.write(str(folder / "hopper.msh"), hopper_mesh(), file_format="gmsh22", binary=False)
@@ -100,18 +112,22 @@ def main():
     beverloo = 0.58 * bulk * np.sqrt(9.81) * (2 * ORIFICE - 1.5 * DIAMETER) ** 2.5   # kg/s
     beverloo_rate = beverloo / (DENSITY * np.pi * DIAMETER ** 3 / 6)
     results = {}
-    for ranks in (1, 2):
+    for ranks in rank_counts:
         # the discharge continues the fill's checkpoint with the orifice open
         seconds, summary, out = pmpm(folder, ranks, restart=checkpoint, end_time=FILL_TIME + sim_time, dt=dt,
                                      orifice="outlet", particles="loose.txt", output_every=sim_time / 10)
-        collisions = summary["diagnostics"].get("collisions", {})
+        collisions = dict(summary["diagnostics"].get("collisions", {}))
+        if carries_counts(checkpoint):  # the discharge's counts then start from the fill's
+            carried = fill["diagnostics"].get("collisions", {})
+            collisions = {key: value - carried.get(key, 0) for key, value in collisions.items()}
         impacts = collisions.get("particle_collisions", 0) + collisions.get("wall_collisions", 0)
         steps = round(sim_time / dt)
-        discharged = summary["particles_removed"]
+        discharged = summary["particles_removed"] - fill.get("particles_removed", 0)  # the restart carries the fill's
         steady = steady_rate(out / "particles.csv", FILL_TIME + sim_time / 2)
         results[ranks] = seconds
         print(f"pmpm hopper ranks={ranks} particles={count} sim_time={sim_time} dt={dt} steps={steps} "
-              f"wall_s={seconds:.1f} discharged={discharged} rate={discharged / sim_time:.0f}/s "
+              f"wall_s={seconds:.1f} collisions_s={summary['wall_seconds'].get('collisions', 0):.1f} "
+              f"discharged={discharged} rate={discharged / sim_time:.0f}/s "
               f"steady_rate={steady:.0f}/s (Beverloo {beverloo_rate:.0f}/s, ratio {steady / beverloo_rate:.2f}) "
               f"collisions={impacts} collisions_per_wall_s={impacts / seconds:.0f} "
               f"events_per_step={collisions.get('events', 0) / steps:.1f} "
@@ -119,9 +135,12 @@ def main():
               f"contacts_per_step={collisions.get('dense_contacts', 0) / steps:.0f} "
               f"resting_contacts_per_step={collisions.get('resting_contacts', 0) / steps:.0f} "
               f"sweeps_per_step={collisions.get('sweeps', 0) / steps:.1f} "
-              f"fallbacks={collisions.get('fallbacks', 0)} capped_steps={collisions.get('capped', 0)}", flush=True)
-    if results[1] and results[2]:
+              f"energy_clamps={collisions.get('energy_clamps', 0)} capped_steps={collisions.get('capped', 0)}",
+              flush=True)
+    if results.get(1) and results.get(2):
         print(f"pmpm speed-up 1 -> 2 ranks: {results[1] / results[2]:.2f}")
+    if "--no-peer" in options:
+        return
     if not PEER.exists():
         print(f"LIGGGHTS peer script not found at {PEER}: no comparison")
         return

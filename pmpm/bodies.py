@@ -18,8 +18,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .arrays import rotation_matrix
 from .errors import CaseError
-from .injection import cylinder_frame, rotation_matrix
+from .injection import cylinder_frame
 
 CYLINDER_FACETS = 48   # sides of the polygon a cylinder's surface is made of, for the collisions
 

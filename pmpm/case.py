@@ -56,6 +56,12 @@ SCHEMA: dict[str, tuple[Key, ...]] = {
         Key("file", "str", None, help="mesh file: gmsh .msh or any format meshio reads"),
         Key("cell_type", "str", "hex", choices=("hex", "tet"), help="box cells: hexahedra or tetrahedra"),
     ),
+    "mesh.patch": (
+        Key("name", "str", help="the boundary name of the faces it covers ([boundary.<name>] sets its type)"),
+        Key("side", "str", choices=("xmin", "xmax", "ymin", "ymax", "zmin", "zmax"), help="the box's side it lies on"),
+        Key("lower", "vec3", unit="m", help="the faces of the side whose centres lie in [lower, upper]"),
+        Key("upper", "vec3", unit="m"),
+    ),
     "mesh.box": (
         Key("lower", "vec3", unit="m"),
         Key("upper", "vec3", unit="m"),
@@ -186,7 +192,7 @@ SCHEMA: dict[str, tuple[Key, ...]] = {
 }
 SECTIONS = ("run", "mesh", "fluid", "boundary", "coupling", "particles", "collisions",
             "field_forces", "injection", "body", "deposition")
-ARRAY_TABLES = {"injection", "particles.add", "body"}
+ARRAY_TABLES = {"injection", "particles.add", "body", "mesh.patch"}
 
 
 # ----------------------------------------------------------------------------------------------
@@ -213,6 +219,7 @@ class Case:
     run: Section
     mesh: Section
     box: Section | None
+    patches: tuple  # of Section: named parts of a box's sides
     fluid: Section | None
     boundaries: dict  # name → Section (only those listed in the file)
     coupling: Section | None
@@ -339,11 +346,14 @@ def build_case(raw: dict, path: Path) -> Case:
     mesh_raw = raw["mesh"]
     if not isinstance(mesh_raw, dict):
         raise CaseError(f"{name}: [mesh] must be a table")
-    mesh = Section(check_table({k: v for k, v in mesh_raw.items() if k != "box"}, SCHEMA["mesh"], "mesh", name,
-                               extra=("box",)))
+    mesh = Section(check_table({k: v for k, v in mesh_raw.items() if k not in ("box", "patch")}, SCHEMA["mesh"],
+                               "mesh", name, extra=("box", "patch")))
     box = table("mesh.box", "mesh.box")
     if (box is None) == (mesh.file is None):
         raise CaseError(f"{name}: [mesh] needs exactly one of box = {{...}} or file = \"...\"")
+    patches = array_of_tables(mesh_raw.get("patch", []), "mesh.patch", name)
+    if patches and box is None:
+        raise CaseError(f"{name}: [[mesh.patch]] names parts of a box's sides; a mesh file names its own boundaries")
 
     boundaries_raw = raw.get("boundary", {})
     if not isinstance(boundaries_raw, dict):
@@ -370,6 +380,7 @@ def build_case(raw: dict, path: Path) -> Case:
         run=table("run", "run", required=True),
         mesh=mesh,
         box=box,
+        patches=patches,
         fluid=table("fluid", "fluid"),
         boundaries=boundaries,
         # a flow with particles is coupled by default

@@ -17,6 +17,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
+from .arrays import sum_rows
 from .collisions import Walls, closest_points_on_triangles
 from .particles import ParticleState
 
@@ -58,14 +59,9 @@ def wall_field_forces(x, mass, walls: Walls, G_w, n4, n5, cutoff) -> np.ndarray:
     face, and continuous across edges and corners of one boundary.
     """
     n = len(x)
-    centroid = (walls.a + walls.b + walls.c) / 3.0
-    size = np.max([np.linalg.norm(v - centroid, axis=1) for v in (walls.a, walls.b, walls.c)], axis=0)
-    found = cKDTree(centroid).query_ball_point(x, cutoff + size.max())
-    sizes = np.fromiter((len(f) for f in found), np.int64, n)
-    if sizes.sum() == 0:
+    p, k = walls.near(x, cutoff)
+    if len(p) == 0:
         return np.zeros((n, 3))
-    p = np.repeat(np.arange(n), sizes)
-    k = np.concatenate([np.asarray(f, np.int64) for f in found])
     q, _ = closest_points_on_triangles(x[p], walls.a[k], walls.b[k], walls.c[k])
     towards = q - x[p]
     R = np.linalg.norm(towards, axis=1)
@@ -89,7 +85,3 @@ def field_forces_of_case(state: ParticleState, walls: Walls | None, section) -> 
     return field_forces(state, walls, section.G_p, section.n1, section.n2, section.n3,
                         section.G_w, section.n4, section.n5, cutoff)
 
-
-def sum_rows(index, values, n) -> np.ndarray:
-    """(n, 3) sums of the (k, 3) ``values`` by row ``index`` (np.bincount per component)."""
-    return np.column_stack([np.bincount(index, values[:, d], minlength=n) for d in range(3)])

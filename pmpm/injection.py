@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .arrays import rotation_matrix
 from .errors import CaseError
 
 MOTION_CODES = {"free": 0, "fixed": 1, "prescribed": 2}
@@ -136,16 +137,6 @@ def initial_particles(case) -> NewParticles:
                                   np.array([p.radius]), np.array([p.density]),
                                   np.array([MOTION_CODES[p.motion]], np.int8)))
     return NewParticles.concatenate(parts)
-
-
-def rotation_matrix(angle_vector: np.ndarray) -> np.ndarray:
-    """Rotation by |angle_vector| radians about its direction (Rodrigues)."""
-    angle = float(np.linalg.norm(angle_vector))
-    if angle == 0.0:
-        return np.eye(3)
-    k = np.asarray(angle_vector) / angle
-    cross = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
-    return np.eye(3) + np.sin(angle) * cross + (1 - np.cos(angle)) * cross @ cross
 
 
 def cylinder_frame(axis) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

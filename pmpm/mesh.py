@@ -49,10 +49,12 @@ class Mesh:
 
     # -- construction -----------------------------------------------------------------------------
     @classmethod
-    def from_box(cls, comm, lower, upper, cells, cell_type: str = "hex") -> "Mesh":
+    def from_box(cls, comm, lower, upper, cells, cell_type: str = "hex", patches=()) -> "Mesh":
         """Collective. A box of ``cells`` = (nx, ny, nz) hexahedra, or 6 tetrahedra per hexahedron.
 
-        Boundaries are named xmin xmax ymin ymax zmin zmax.
+        Boundaries are named xmin xmax ymin ymax zmin zmax, and ``patches`` (name, side, lower,
+        upper) rename the faces of a side whose centres lie in the box [lower, upper] (an inlet on
+        part of a side; later patches win).
         """
         lower, upper = np.asarray(lower, float), np.asarray(upper, float)
         cells = [int(n) for n in cells]
@@ -77,7 +79,13 @@ class Mesh:
                 tolerance = 1e-9 * extent[axis]
                 index[np.abs(centers[:, axis] - lower[axis]) < tolerance] = 2 * axis
                 index[np.abs(centers[:, axis] - upper[axis]) < tolerance] = 2 * axis + 1
-            return index, list(BOX_BOUNDARIES)
+            names = list(BOX_BOUNDARIES)
+            for name, side, low, high in patches:
+                if name not in names:
+                    names.append(name)
+                on = (index == BOX_BOUNDARIES.index(side)) & np.all((centers >= low) & (centers <= high), axis=1)
+                index[on] = names.index(name)
+            return index, names
 
         mesh = cls(comm, dm, cell_type, serial_vertices, name_box_faces, start)
         mesh.source = (f"box {'×'.join(map(str, cells))} {cell_type}, "

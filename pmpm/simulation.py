@@ -62,7 +62,8 @@ class Model:
 def build_mesh(comm, case: Case) -> Mesh:
     """Collective. The case's mesh, distributed over ``comm``."""
     if case.box is not None:
-        return Mesh.from_box(comm, case.box.lower, case.box.upper, case.box.cells, case.mesh.cell_type)
+        patches = [(p.name, p.side, p.lower, p.upper) for p in case.patches]
+        return Mesh.from_box(comm, case.box.lower, case.box.upper, case.box.cells, case.mesh.cell_type, patches)
     return Mesh.from_file(comm, case.resolve(case.mesh.file))
 
 

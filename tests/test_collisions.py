@@ -7,10 +7,9 @@ import pytest
 from scipy.spatial import cKDTree
 
 from pmpm.case import Section
-from pmpm.collisions import (CollisionSettings, Walls, advance_with_collisions, build_walls,
-                             check_initial_particles, closest_points_on_triangles, collision_settings,
-                             contact_impulse, overlaps_existing)
-from pmpm.contact_kernels import closing_pairs, projected_gauss_seidel
+from pmpm.collisions import (CollisionSettings, ContactMemory, Walls, advance_with_collisions, build_walls,
+                             check_initial_particles, closest_points_on_triangles, closing_pairs, collision_settings,
+                             contact_impulse, overlaps_existing, projected_gauss_seidel)
 from pmpm.errors import CaseError
 from pmpm.injection import NewParticles
 from pmpm.particles import FIXED, ParticleState
@@ -49,6 +48,20 @@ def step_under_gravity(state, walls, dt, settings, memory=None, gravity=(0.0, 0.
     contact solver's ``memory`` from the last step). Returns the ContactStep."""
     state.v[state.movable] += np.asarray(gravity) * dt
     return advance_with_collisions(state, walls, dt, settings, memory)
+
+
+class TimeLoop:
+    """What the time loop does each step: v += g dt for the free particles, then move with
+    collisions, the contact memory and the (moved) walls carried to the next step."""
+
+    def __init__(self, walls, dt, settings, gravity=(0.0, 0.0, -G)):
+        self.walls, self.dt, self.settings, self.gravity = walls, dt, settings, gravity
+        self.memory = None
+
+    def step(self, state) -> dict:
+        result = step_under_gravity(state, self.walls, self.dt, self.settings, self.memory, self.gravity)
+        self.walls, self.memory = result.walls, result.memory
+        return result.stats
 
 
 # -- particle-particle -------------------------------------------------------------------------
@@ -603,3 +616,233 @@ def test_overlaps_existing():
     new = new_particles([[0.015, 0, 0], [0.5, 0, 0], [0.51, 0, 0], [0.9, 0, 0]], 0.01)
     assert overlaps_existing(state, new).tolist() == [True, False, True, False]
     assert overlaps_existing(ParticleState.empty(), new).tolist() == [False, False, True, False]
+
+
+# -- the engine's guarantees (docs/collisions.md) ----------------------------------------------
+def pyramid_bed(r, layers_of=6):
+    """A square layer of layers_of² touching spheres on the floor, the next layer in its pockets,
+    a third in the pockets of that: a packing in static equilibrium (the box closes it in)."""
+    grid = r + 2 * r * np.arange(layers_of)
+    pocket = 2 * r + 2 * r * np.arange(layers_of - 1)
+    h = r * np.sqrt(2)
+    x = ([[a, b, r] for a in grid for b in grid] + [[a, b, r + h] for a in pocket for b in pocket]
+         + [[a, b, r + 2 * h] for a in grid[1:-1] for b in grid[1:-1]])
+    return np.array(x), 2 * r * layers_of
+
+
+@pytest.mark.mpi
+@pytest.mark.parametrize("dense_contacts", [256, 0])
+def test_settled_bed_stays_at_rest(dense_contacts):
+    """A bed in static equilibrium under gravity for 300 steps, solved as dense steps (256) or by
+    resting solves (0): no sphere moves faster than 1e-6 g dt, none spins about the vertical
+    faster than 1e-6 g dt / r, and none moves by 1e-6 d (the previous engine: g dt spikes and
+    spins of a few rad/s)."""
+    r, dt = 0.01, 1e-3
+    x, side = pyramid_bed(r)
+    state = particles(x, radius=r)
+    walls = box(side, 0.5, restitution=0.5, friction=0.5)
+    settings = CollisionSettings(restitution=0.5, friction=0.5, rest_speed=3 * G * dt, dense_contacts=dense_contacts)
+    loop = TimeLoop(walls, dt, settings)
+    speed = spin = 0.0
+    for _ in range(300):
+        stats = loop.step(state)
+        assert stats["dense_steps"] == (dense_contacts > 0) and not stats["capped"]
+        speed = max(speed, np.abs(state.v).max())
+        spin = max(spin, np.abs(state.omega[:, 2]).max())
+    assert speed < 1e-6 * G * dt
+    assert spin < 1e-6 * G * dt / r
+    assert np.abs(state.x - x).max() < 1e-6 * 2 * r
+
+
+@pytest.mark.mpi
+def test_overlapping_release_is_separated_without_energy():
+    """Spheres released overlapping each other and the walls (up to 60 % of a radius), at rest,
+    without gravity: after one step no overlap is left beyond 1e-9 of the contact distance, and
+    no velocity has appeared (kinetic energy exactly 0): overlaps are removed by moving
+    positions, never by velocities."""
+    r = 0.01
+    rng = np.random.default_rng(5)
+    x = rng.uniform(0.4 * r, 0.1 - 0.4 * r, (40, 3))
+    x[:, 2] = rng.uniform(0.4 * r, 0.05, 40)
+    state = particles(x, radius=r)
+    walls = box(0.1, 0.5, restitution=0.5, friction=0.5)
+    loop = TimeLoop(walls, 1e-3, CollisionSettings(restitution=0.5, friction=0.5, rest_speed=3 * G * 1e-3),
+                    gravity=(0.0, 0.0, 0.0))
+    pairs = np.linalg.norm(x[:, None] - x[None], axis=2) + np.eye(len(x))
+    assert pairs.min() < 1.2 * r and min(x[:, :2].min(), x[:, 2].min()) < 0.5 * r  # deep overlaps
+    for step in range(20):
+        stats = loop.step(state)
+        pairs = np.linalg.norm(state.x[:, None] - state.x[None], axis=2) + np.eye(len(x))
+        inside = min(state.x[:, :2].min(), (0.1 - state.x[:, :2]).min(), state.x[:, 2].min())
+        assert np.all(state.v == 0) and np.all(state.omega == 0)
+        if pairs.min() >= 2 * r * (1 - 1e-9) and inside >= r * (1 - 1e-9):
+            break
+    assert step == 0 and stats["overlaps_removed"] > 0
+
+
+@pytest.mark.mpi
+def test_sphere_released_cutting_a_wall():
+    """A sphere released with its centre 0.4 r from a side wall, sliding along it at 0.1 m/s
+    under gravity on the floor: after one step it is r from the wall, on the floor, slowed only by
+    the floor's friction (μ g dt: the overlap made no normal force on the wall, so no friction
+    there either) and nothing pushes it off the wall (no energy from the overlap)."""
+    r, dt = 0.01, 1e-3
+    walls = box(0.1, 0.5, restitution=0.5, friction=0.5)
+    state = particles([[0.05, 0.4 * r, r]], [[0.1, 0.0, 0.0]], radius=r)
+    loop = TimeLoop(walls, dt, CollisionSettings(restitution=0.5, friction=0.5, rest_speed=3 * G * dt))
+    loop.step(state)
+    assert state.x[0, 1] == pytest.approx(r, rel=1e-9)
+    assert state.v[0, 1] == 0.0 and abs(state.v[0, 2]) < 1e-15
+    assert state.v[0, 0] == pytest.approx(0.1 - 0.5 * G * dt, rel=1e-12)
+    assert state.x[0, 2] == pytest.approx(r, rel=1e-12)
+    for _ in range(100):
+        loop.step(state)
+        assert abs(state.x[0, 1] - r) < 1e-9 * r and state.v[0, 1] <= 0.0
+
+
+@pytest.mark.mpi
+def test_contact_memory_round_trip_gives_the_same_next_step(tmp_path):
+    """The contact memory written as arrays (as to a checkpoint) and read back gives the same next
+    step to the bit; without it, the step is not the same (so the memory is used)."""
+    r, dt = 0.01, 1e-3
+    x, side = pyramid_bed(r, 4)
+    rng = np.random.default_rng(2)
+    state = particles(x + rng.uniform(-0.05 * r, 0.05 * r, x.shape) + [0, 0, 0.1 * r], radius=r)
+    walls = box(side, 0.5, restitution=0.5, friction=0.5)
+    settings = CollisionSettings(restitution=0.5, friction=0.5, rest_speed=3 * G * dt)
+    loop = TimeLoop(walls, dt, settings)
+    for _ in range(60):
+        loop.step(state)
+    memory = loop.memory
+    assert len(memory) > 20 and memory.normal_impulse.min() > 0
+    np.savez(tmp_path / "memory.npz", **memory.to_arrays())
+    with np.load(tmp_path / "memory.npz") as stored:
+        restored = ContactMemory.from_arrays(dict(stored))
+    after = []
+    for remembered in (memory, restored, None):
+        copy = particles(state.x, state.v, radius=r, omega=state.omega)
+        copy.v[copy.movable] += np.array([0, 0, -G]) * dt
+        result = advance_with_collisions(copy, walls, dt, settings, remembered)
+        after.append((copy, result.memory))
+    (a, memory_a), (b, memory_b), (c, _) = after
+    for name in ("x", "v", "omega"):
+        assert np.array_equal(getattr(a, name), getattr(b, name))
+    for name, value in memory_a.to_arrays().items():
+        assert np.array_equal(value, memory_b.to_arrays()[name])
+    assert not np.array_equal(c.v, a.v)
+
+
+@pytest.mark.mpi
+def test_rigid_walls_move_in_the_result_not_in_place():
+    """A moving rigid wall: the step returns the moved walls (V dt further) and leaves the walls
+    it was given as they were; a surface-moving wall is returned as it is."""
+    paddle = rectangle((0, -0.5, -0.5), (0, 1, 0), (0, 0, 1), velocity=(2.0, 0, 0), rigid=True)
+    before = paddle.a.copy()
+    result = advance_with_collisions(particles([[0.5, 0, 0]]), paddle, 0.01, CollisionSettings())
+    assert np.array_equal(paddle.a, before)
+    assert np.allclose(result.walls.a - before, [0.02, 0, 0], rtol=0, atol=1e-15)
+    belt = floor(velocity=(1.0, 0, 0))
+    assert advance_with_collisions(particles([[0, 0, 0.5]]), belt, 0.01, CollisionSettings()).walls is belt
+
+
+@pytest.mark.mpi
+def test_dense_steps_never_gain_kinetic_energy():
+    """A dense gas of elastic, frictional spheres in a closed box without gravity, every step a
+    dense step (all contacts at once, Newton's restitution e = 1): the kinetic energy never grows
+    by more than 1e-12 of itself in a step."""
+    r = 0.005
+    rng = np.random.default_rng(11)
+    g = np.arange(r * 1.05, 0.05 - r, 2.1 * r)
+    x = np.array([[a, b, c] for a in g for b in g for c in g])
+    state = particles(x, rng.normal(0, 0.5, x.shape), radius=r, omega=rng.normal(0, 50, x.shape))
+    walls = box(0.05, 0.05, restitution=1.0, friction=0.5)
+    top = rectangle((0, 0, 0.05), (0, 0.05, 0), (0.05, 0, 0), restitution=1.0, friction=0.5)
+    walls = Walls(*(np.concatenate([getattr(w, f) for w in (walls, top)]) for f in (
+        "a", "b", "c", "normal", "boundary", "restitution", "friction", "rolling_friction", "velocity",
+        "angular_velocity", "center", "rigid", "deposition")))
+    settings = CollisionSettings(restitution=1.0, friction=0.5, rest_speed=1e-3, dense_contacts=1)
+    loop = TimeLoop(walls, 1e-3, settings, gravity=(0.0, 0.0, 0.0))
+    energy = kinetic(state)
+    for _ in range(100):
+        stats = loop.step(state)
+        assert stats["dense_steps"] == 1
+        now = kinetic(state)
+        assert now <= energy * (1 + 1e-12)
+        energy = now
+
+
+def test_wall_search_matches_the_direct_test():
+    """The walls' grid search lists exactly the (point, triangle) pairs whose boxes and bounding
+    spheres meet (a direct test over every pair), in order, for triangles of very different sizes;
+    every triangle within reach of a point is among them."""
+    rng = np.random.default_rng(8)
+    corners = rng.uniform(0, 1, (300, 1, 3)) + rng.uniform(-1, 1, (300, 3, 3)) * rng.uniform(0.001, 0.2, (300, 1, 1))
+    walls = Walls.from_triangles(corners)
+    points = rng.uniform(-0.1, 1.1, (500, 3))
+    reach = rng.uniform(0, 0.05, 500)
+    extra = rng.uniform(0, 0.02, 300)
+    p, k = walls.near(points, reach, extra)
+    grow = reach[:, None, None] + extra[None, :, None]
+    low, high = np.min(corners, axis=1), np.max(corners, axis=1)
+    boxes = np.all((low[None] - grow <= points[:, None]) & (points[:, None] <= high[None] + grow), axis=2)
+    distance = np.linalg.norm(points[:, None] - walls.centroid[None], axis=2)
+    direct = np.argwhere(boxes & (distance <= reach[:, None] + walls.bounding_radius[None] + extra[None]))
+    assert len(direct) > 300
+    assert np.array_equal(np.column_stack([p, k]), direct)
+    a, b, c = (np.repeat(corners[None, :, i], len(points), 0).reshape(-1, 3) for i in range(3))
+    q, _ = closest_points_on_triangles(np.repeat(points, len(corners), 0), a, b, c)
+    within = np.argwhere(np.linalg.norm(np.repeat(points, len(corners), 0) - q, axis=1).reshape(len(points), -1)
+                         <= reach[:, None])
+    assert set(map(tuple, within)) <= set(map(tuple, direct)) and len(within) > 50
+
+
+@pytest.mark.parametrize("spread", [0.1, 100.0])
+def test_pair_search_matches_the_direct_test(spread):
+    """The cell list lists exactly the pairs closer than r_i + r_j (+ 1e-6) + reach, i < j, sorted:
+    for a pack, and for a cluster in a domain so wide that the cells are grown; also with only
+    some particles chosen."""
+    from pmpm.collisions.jit import kernels
+    from pmpm.collisions.search import candidate_pairs
+    rng = np.random.default_rng(4)
+    x = rng.uniform(0, 0.1, (600, 3))
+    x[:100] = rng.uniform(0, spread, (100, 3))
+    radius, reach = rng.uniform(0.002, 0.006, 600), 0.003
+    distance = np.linalg.norm(x[:, None] - x[None], axis=2)
+    close = np.triu(distance <= (radius[:, None] + radius[None]) * (1 + 1e-6) + reach, 1)
+    assert np.array_equal(candidate_pairs(x, radius, reach, kernels().cell_list), np.argwhere(close))
+    around = rng.choice(600, 50, replace=False)
+    chosen = np.zeros(600, bool)
+    chosen[around] = True
+    expected = np.argwhere(close & (chosen[:, None] | chosen[None]))
+    assert len(expected) > 10
+    assert np.array_equal(candidate_pairs(x, radius, reach, kernels().cell_list, around), expected)
+
+
+@pytest.mark.mpi
+def test_dense_impact_under_a_load_stays_above_the_floor():
+    """A column of 20 touching spheres falling at 2 m/s onto a floor 1 mm below it, as a dense
+    step: the impact inside the step moves the bottom sphere back by its own velocity change
+    times the impulse-weighted contact time, so it ends above the floor and the column is not
+    squeezed into it (by the floor impulse, which carries the whole column's momentum, it would
+    end 38 mm back, through the floor)."""
+    r, gap, u, dt = 0.005, 1e-3, 2.0, 1e-3
+    state = particles([[0, 0, r + gap + 2 * r * k] for k in range(20)], [[0, 0, -u]] * 20, radius=r)
+    settings = CollisionSettings(restitution=0.5, friction=0.3, rest_speed=0.01, dense_contacts=1)
+    stats = advance_with_collisions(state, floor(restitution=0.5, friction=0.3), dt, settings).stats
+    assert stats["dense_steps"] == 1 and stats["wall_collisions"] == 1
+    assert r * (1 - 1e-6) <= state.x[0, 2] <= r + gap + u * dt
+    assert np.diff(state.x[:, 2]).min() >= 2 * r * (1 - 1e-6)
+    assert np.all(state.v[:, 2] > -u)  # every sphere slowed by the impact
+
+
+def test_contact_memory_reads_the_arrays_of_the_engine_before():
+    """A checkpoint written by the engine before holds keys first · 2^31 + other + 2^30 and the
+    tangential impulse on the contact's i with a sign: read back, the same contacts and the
+    impulses on the lower id (a pair stored the other way round turns its tangential impulse)."""
+    keys = np.array([3 * 2 ** 31 + 7 + 2 ** 30, 5 * 2 ** 31 + (-1 - 2) + 2 ** 30])
+    memory = ContactMemory.from_arrays({"keys": keys, "normal": np.array([1.0, 2.0]),
+                                        "tangential": np.array([[1.0, 0, 0], [0, 1.0, 0]]), "sign": np.array([-1.0, 1.0])})
+    assert memory.first_id.tolist() == [3, 5] and memory.second_id.tolist() == [7, -3]
+    assert memory.normal_impulse.tolist() == [1.0, 2.0]
+    assert memory.tangential_impulse.tolist() == [[-1.0, 0, 0], [0, 1.0, 0]]
+    assert np.all(np.diff(memory.keys) > 0)

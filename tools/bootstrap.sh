@@ -25,7 +25,7 @@ if [ ! -f "$venv/.pmpm-ready" ] || [ "$root/pyproject.toml" -nt "$venv/.pmpm-rea
   site=$("$venv/bin/python" -c 'import sysconfig; print(sysconfig.get_paths()["purelib"])')
   echo "$petsc_site" > "$site/petsc318.pth"
   "$venv/bin/pip" install -q --no-build-isolation --no-deps -e "$root" >&2
-  # numba compiles the contact sweeps (pmpm/contact_kernels.py); a wheel from PyPI, with numpy held at
+  # numba compiles the contact engine (pmpm/collisions/); a wheel from PyPI, with numpy held at
   # Debian's version so that pip never replaces it under Debian's binary modules
   numpy_version=$("$venv/bin/python" -c 'import numpy; print(numpy.__version__)')
   "$venv/bin/pip" install -q "numba==0.68.1" "numpy==$numpy_version" >&2

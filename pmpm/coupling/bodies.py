@@ -14,6 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 from mpi4py import MPI
 
+from ..arrays import sum_rows
 from .locate import reference_samples
 from .penalty import cell_rate
 
@@ -95,8 +96,3 @@ class BodyForcing:
     def volume_fraction(self, passes: BodyPasses) -> np.ndarray:
         """(n_owned,) the bodies' volume fraction per owned cell."""
         return np.bincount(passes.cell, passes.alpha, minlength=self.mesh.n_owned_cells)
-
-
-def sum_rows(index: np.ndarray, values: np.ndarray, n: int) -> np.ndarray:
-    """(n, 3) sums of the (k, 3) ``values`` by row ``index``."""
-    return np.column_stack([np.bincount(index, values[:, d], minlength=n) for d in range(3)])

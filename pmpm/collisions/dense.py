@@ -1,0 +1,103 @@
+"""A dense step: every contact of the step solved at once (time-stepping contact dynamics), for
+beds and dense flows where events would cascade.
+
+Each contact gets a target normal velocity for after the step. An impact (approaching faster than
+``rest_speed``, touching or closing its gap within the step) rebounds with its restitution,
+Newton's law e u_n; any other contact closes its gap within the step but not more
+(−gap/dt; 0 when touching). Impulses: normal >= 0, tangential in the Coulomb cone; projected
+Gauss–Seidel sweeps over the contacts in the record's order (compiled, ``impulses.sweep``),
+started from the previous step's impulses (``ContactMemory``), at most ``dense_sweeps`` sweeps
+(20 × as many without any). An impact that happens at time t_c inside the step moves its bodies
+as the event solution does: before t_c at the old velocity, after it at the new one
+(x_end = x0 + v_new dt − (v_new − v_old) t_c, with t_c for a body in several contacts their
+times weighted by their impulses, 0 for a touching one), so an isolated impact ends where the
+time-ordered solution ends, with its velocity, and no body moves further than its velocity
+change allows. Deposition, the energy check and rolling friction as in a resting solve.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from ..arrays import cross
+from .search import wall_arrays
+from .settings import COLD_SWEEPS, CONTACT_TOL, ENERGY_TOL, SWEEP_TOL
+from .stats import CLAMPS, PAIR, RESTING, SWEEPS, WALL
+
+
+def dense_step(bodies, record, warm_n, warm_t, settings, dt, walls, kernels, counters, extra):
+    """Solve the contacts of ``record`` at once and move every body to the end of the step.
+    ``warm_n`` (m,), ``warm_t`` (m, 3): the remembered impulses. Returns the contacts' impulses
+    (m,) and (m, 3) (N s, on ``first``)."""
+    impulses = kernels.impulses
+    n, m = len(bodies.radius) - 1, len(record)
+    first, second, triangle = record.first, record.second, record.triangle
+    rows = np.arange(m)
+    rows = rows[~kernels.narrow.parallel_duplicates(rows, first, triangle, record.gap, record.normal, bodies.radius)]
+    wall = triangle >= 0
+    r_first = bodies.radius[first]
+    r_second = np.where(wall, 0.0, bodies.radius[second])
+    deposition = wall_arrays(walls)[9]
+    changed = np.zeros(n + 1, np.int64)
+    kernels.deposition.deposit_touching(rows, record.gap, r_first, bodies.kernel_tuple(), (first, second, triangle),
+                                        deposition, changed, counters)
+    v, w, inv_m, inv_i = bodies.v, bodies.w, bodies.inv_m, bodies.inv_i
+    normal, gap = record.normal, record.gap
+    u = (v[first] - v[second] - record.wall_velocity
+         - cross(r_first[:, None] * w[first] + r_second[:, None] * w[second], normal))
+    closing = -(u * normal).sum(1)
+    touching = gap <= CONTACT_TOL * r_first
+    hits = (closing > settings.rest_speed) & (touching | (record.time <= dt))
+    target = np.where(hits, record.restitution * closing, -np.maximum(gap, 0.0) / dt)
+    hit_time = np.where(hits & ~touching & np.isfinite(record.time), record.time, 0.0)
+    lam_n, lam_t = np.zeros(m), np.zeros((m, 3))
+    lam_n[rows], lam_t[rows] = warm_n[rows], warm_t[rows]
+    remembered = bool(lam_n.any())
+    members = np.unique(np.concatenate([first[rows], second[rows]]))
+    members = members[members < n]
+    v0, w0 = v.copy(), w.copy()
+    energy = impulses.kinetic_energy(members, inv_m, inv_i, v, w)
+    driven = bodies.driven[first[rows]] | bodies.driven[second[rows]]
+    if walls is not None:
+        moving = walls.velocity.any(1) | walls.angular_velocity.any(1)
+        driven |= wall[rows] & moving[np.maximum(triangle[rows], 0)]
+    if remembered:
+        impulses.warm_start(rows, first, second, normal, r_first, r_second, record.friction, inv_m, inv_i, v, w,
+                            lam_n, lam_t)
+    budget = settings.dense_sweeps if remembered else COLD_SWEEPS * settings.dense_sweeps
+    scale = max(float(np.abs(closing[rows]).max(initial=0.0)), settings.rest_speed, 1e-300)
+    tol = SWEEP_TOL * settings.rest_speed if settings.rest_speed > 0 else 1e-12 * scale
+    sweeps = impulses.sweep(rows, first, second, normal, r_first, r_second, record.wall_velocity, target,
+                            record.friction, inv_m, inv_i, v, w, lam_n, lam_t, budget, tol)
+    if not driven.any() and impulses.kinetic_energy(members, inv_m, inv_i, v, w) > energy * (1 + ENERGY_TOL) + 1e-300:
+        # Newton's law over simultaneous contacts can make energy: solve inelastically instead
+        counters[CLAMPS] += 1
+        v[:], w[:] = v0, w0
+        lam_n[:], lam_t[:] = 0.0, 0.0
+        target = -np.maximum(gap, 0.0) / dt
+        hit_time[:] = 0.0
+        sweeps += impulses.sweep(rows, first, second, normal, r_first, r_second, record.wall_velocity, target,
+                                 record.friction, inv_m, inv_i, v, w, lam_n, lam_t, COLD_SWEEPS * settings.dense_sweeps,
+                                 tol)
+        impulses.limit_energy(members, inv_m, inv_i, v, w, v0, w0, energy, ENERGY_TOL)
+    # each body's velocity changed at the impulse-weighted time of its contacts (0 touching, t_c
+    # for an impact inside the step): before it the body moved at its old velocity
+    strength = np.sqrt(lam_n[rows] ** 2 + (lam_t[rows] ** 2).sum(1))
+    weight = np.bincount(first[rows], strength, n + 1) + np.bincount(second[rows], strength, n + 1)
+    late = (np.bincount(first[rows], strength * hit_time[rows], n + 1)
+            + np.bincount(second[rows], strength * hit_time[rows], n + 1))
+    changed_at = np.divide(late, weight, out=np.zeros(n + 1), where=weight > 0)
+    displacement = -(v - v0) * changed_at[:, None]
+    size = np.sqrt((lam_t * lam_t).sum(1))
+    sticking = touching & (lam_n > 0) & (size < record.friction * lam_n * (1 - 1e-9))
+    rolling = rows[wall[rows] & (record.rolling_friction[rows] > 0) & sticking[rows]]
+    impulses.roll_resistance(rolling, first, normal, record.wall_velocity, lam_n, record.rolling_friction, inv_m,
+                             bodies.radius, v, w)
+    bodies.x += v * dt + displacement
+    active = rows[lam_n[rows] > 0]
+    impact = hits[active]
+    counters[PAIR] += int((impact & ~wall[active]).sum())
+    counters[WALL] += int((impact & wall[active]).sum())
+    counters[RESTING] += int((~impact).sum())
+    counters[SWEEPS] += sweeps
+    extra.update(dense_steps=1, dense_contacts=len(rows))
+    return lam_n, lam_t

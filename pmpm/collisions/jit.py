@@ -1,0 +1,55 @@
+"""Loading the compiled kernels: numba is imported on their first use, so a run without
+[collisions] never loads it (~0.3 s).
+
+numba caches each compiled function on disk next to its source (``__pycache__``) and checks only
+the timestamp of that function's own file, not of the files whose functions it calls. The kernels
+call each other across files, so the loader keeps a digest of the compiled modules' sources (and
+of the constants they read) with the cache and clears the package's cached kernels when any of
+them changed. Ranks that compile
+at once do not clash: numba writes its cache files under a temporary name and renames them.
+With ``NUMBA_CACHE_DIR`` set, numba caches elsewhere and that directory is the user's to clear.
+"""
+from __future__ import annotations
+
+import hashlib
+import os
+from functools import cache
+from pathlib import Path
+from types import SimpleNamespace
+
+HERE = Path(__file__).resolve().parent
+COMPILED = ("cell_list", "contact_times", "deposition", "event_queue", "events", "impulses", "narrow", "settings",
+            "stats", "wall_grid")  # and what they import
+
+
+def clear_stale_cache() -> None:
+    """Remove this package's numba cache files if any of its sources changed since they were made."""
+    if os.environ.get("NUMBA_CACHE_DIR"):
+        return
+    digest = hashlib.sha1(b"".join((HERE / f"{name}.py").read_bytes() for name in COMPILED)).hexdigest()
+    folder = HERE / "__pycache__"
+    stamp = folder / "kernels.sha1"
+    try:
+        if stamp.exists() and stamp.read_text() == digest:
+            return
+        folder.mkdir(exist_ok=True)
+        for path in chain_globs(folder, ("*.nbi", "*.nbc")):
+            path.unlink(missing_ok=True)
+        temporary = folder / f"kernels.sha1.{os.getpid()}"
+        temporary.write_text(digest)
+        os.replace(temporary, stamp)
+    except OSError:  # a read-only installation: numba falls back on its own cache folder
+        pass
+
+
+def chain_globs(folder: Path, patterns) -> list[Path]:
+    return [path for pattern in patterns for path in folder.glob(pattern)]
+
+
+@cache
+def kernels() -> SimpleNamespace:
+    """The compiled modules (imported, and so compiled or loaded from the cache, on first call)."""
+    clear_stale_cache()
+    from . import cell_list, contact_times, deposition, events, impulses, narrow, wall_grid
+    return SimpleNamespace(cell_list=cell_list, contact_times=contact_times, deposition=deposition, events=events,
+                           impulses=impulses, narrow=narrow, wall_grid=wall_grid)

@@ -1,0 +1,112 @@
+"""A uniform grid of the wall triangles, compiled (numba): which triangles may be near a point.
+
+Each triangle is listed in every cell its bounding box overlaps (CSR: ``start`` per cell, then
+triangle indices); a point with a reach visits the cells its own box overlaps and keeps the
+triangles whose bounding spheres meet its sphere. Built once per ``Walls`` (a moved wall is a
+new ``Walls``), in O(triangles); a query costs O(points × triangles per cell).
+"""
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+
+@njit(cache=True)
+def cell_range(low, high, lower, cell, dims):
+    """The cell index ranges (inclusive) of the box [low, high] in each axis, clamped; empty
+    (first > last) if the box misses the grid."""
+    first = np.empty(3, np.int64)
+    last = np.empty(3, np.int64)
+    for d in range(3):
+        first[d] = max(int(np.floor((low[d] - lower[d]) / cell)), 0)
+        last[d] = min(int(np.floor((high[d] - lower[d]) / cell)), dims[d] - 1)
+    return first, last
+
+
+@njit(cache=True)
+def build(a, b, c, lower, cell, dims):
+    """CSR of the triangles per cell: (start (cells + 1,), triangle indices)."""
+    m = len(a)
+    cells = dims[0] * dims[1] * dims[2]
+    count = np.zeros(cells + 1, np.int64)
+    for pass_ in range(2):
+        if pass_ == 1:
+            for k in range(cells):
+                count[k + 1] += count[k]
+            items = np.empty(count[cells], np.int64)
+            fill = count[:cells].copy()
+        for k in range(m):
+            low = np.minimum(np.minimum(a[k], b[k]), c[k])
+            high = np.maximum(np.maximum(a[k], b[k]), c[k])
+            first, last = cell_range(low, high, lower, cell, dims)
+            for i in range(first[0], last[0] + 1):
+                for j in range(first[1], last[1] + 1):
+                    for h in range(first[2], last[2] + 1):
+                        index = (i * dims[1] + j) * dims[2] + h
+                        if pass_ == 0:
+                            count[index + 1] += 1
+                        else:
+                            items[fill[index]] = k
+                            fill[index] += 1
+    return count, items
+
+
+@njit(cache=True)
+def near(points, reach, extra, extra_max, lower, cell, dims, start, items, box_low, box_high, centroid, bound):
+    """(point, triangle) index pairs that may come within ``reach`` (per point, m) of each other
+    when the triangle moves by up to ``extra`` (per triangle, m): their bounding boxes meet and
+    their bounding spheres meet (|p − centroid| <= reach_p + bound_k + extra_k), both necessary.
+    Sorted by point, then triangle. ``extra_max`` widens the cells visited."""
+    n = len(points)
+    seen = np.full(len(centroid), -1, np.int64)
+    capacity = 16 * n + 16
+    found_p = np.empty(capacity, np.int64)
+    found_k = np.empty(capacity, np.int64)
+    count = 0
+    low = np.empty(3)
+    high = np.empty(3)
+    for p in range(n):
+        for d in range(3):
+            low[d] = points[p, d] - reach[p] - extra_max
+            high[d] = points[p, d] + reach[p] + extra_max
+        first, last = cell_range(low, high, lower, cell, dims)
+        begin = count
+        for i in range(first[0], last[0] + 1):
+            for j in range(first[1], last[1] + 1):
+                for h in range(first[2], last[2] + 1):
+                    index = (i * dims[1] + j) * dims[2] + h
+                    for at in range(start[index], start[index + 1]):
+                        k = items[at]
+                        if seen[k] == p:
+                            continue
+                        seen[k] = p
+                        grow = reach[p] + extra[k]
+                        apart = False
+                        for d in range(3):
+                            apart |= (box_low[k, d] - grow > points[p, d]) or (box_high[k, d] + grow < points[p, d])
+                        if apart:
+                            continue
+                        d0 = points[p, 0] - centroid[k, 0]
+                        d1 = points[p, 1] - centroid[k, 1]
+                        d2 = points[p, 2] - centroid[k, 2]
+                        limit = grow + bound[k]
+                        if d0 * d0 + d1 * d1 + d2 * d2 > limit * limit:
+                            continue
+                        if count == capacity:
+                            capacity *= 2
+                            grown_p = np.empty(capacity, np.int64)
+                            grown_k = np.empty(capacity, np.int64)
+                            grown_p[:count] = found_p[:count]
+                            grown_k[:count] = found_k[:count]
+                            found_p, found_k = grown_p, grown_k
+                        found_p[count] = p
+                        found_k[count] = k
+                        count += 1
+        for at in range(begin + 1, count):  # the few triangles of p in order (insertion, in place)
+            k = found_k[at]
+            back = at - 1
+            while back >= begin and found_k[back] > k:
+                found_k[back + 1] = found_k[back]
+                back -= 1
+            found_k[back + 1] = k
+    return found_p[:count].copy(), found_k[:count].copy()
