@@ -64,6 +64,15 @@ def column(comm, folder: Path, width: float, height: float, cells: tuple[int, in
     return sim
 
 
+def filtered(coupling: dict | None, diameter: float) -> dict:
+    """``coupling`` with the drag correction's default filter (3 diameters) said explicitly: the
+    case cannot know it, its particles are added after it is built."""
+    coupling = dict(coupling or {})
+    if coupling.get("drag_correction", "off") != "off":
+        coupling.setdefault("correction_filter", 3.0 * diameter)
+    return coupling
+
+
 def with_particles(sim: Simulation, x: np.ndarray, radius: float, density: float, motion: int) -> Simulation:
     """Collective. ``sim`` with spheres at ``x`` (n, 3), at rest."""
     n = len(x)
@@ -93,17 +102,19 @@ def ergun_pressure_gradient(mesh, fluid, volume_fraction, z_low: float, z_high: 
 
 
 def packed_bed(comm, folder: Path, cells_per_diameter: int, reynolds: float, diameter: float = 0.003,
-               width: float = 6.0, bed: float = 8.0, margin: float = 2.0, porosity_section: float = 2.0,
+               width: float = 4.0, bed: float = 8.0, margin: float = 1.5, porosity_section: float = 2.0,
                count: int | None = None, seed: int = 1, rule: str = "subcell", cfl: float = 0.3,
-               diffusion_number: float = 0.4, flow_times: float = 3.0, min_steps: int = 40,
-               coupling: dict | None = None, density: float = 1000.0, viscosity: float = 1e-3) -> dict:
+               diffusion_number: float = 0.4, flow_times: float = 3.0, min_steps: int = 40, max_steps: int = 100000,
+               coupling: dict | None = None, density: float = 1000.0, viscosity: float = 1e-3,
+               forcing: str = "penalty", passes: int = 1) -> dict:
     """Collective. A fixed random packing of spheres (``pmpm.packing.random_packing``, mirror sides)
     ``bed`` diameters tall in a column ``width`` diameters wide with symmetry sides, ``margin``
     diameters of empty column below (the inlet) and above (the outlet); a stream at the particle
     Reynolds number ``reynolds`` = ρ U d/μ (U superficial). The pressure gradient is measured over
     the bed less ``porosity_section`` diameters at each end, the voidage ε there exactly (on a fine
     lattice). The step is the smaller of ``cfl`` h/(U/ε) and ``diffusion_number`` h²/ν; the run
-    lasts ``flow_times`` passages of the bed at the interstitial speed U/ε, or ``min_steps``.
+    lasts ``flow_times`` passages of the bed at the interstitial speed U/ε, at least ``min_steps``
+    and at most ``max_steps`` steps.
 
     Returns a dict: reynolds, porosity, gradient (−dp/dz, Pa/m), its history per step, steps,
     cells, particles, seconds (wall, this run's steps)."""
@@ -121,9 +132,10 @@ def packed_bed(comm, folder: Path, cells_per_diameter: int, reynolds: float, dia
     nu = viscosity / density
     speed = reynolds * nu / d
     dt = min(cfl * h * porosity / speed, diffusion_number * h * h / nu)
-    sim = column(comm, folder, w, total, (n_across, n_up), dt, speed, density, viscosity, rule=rule, coupling=coupling)
+    sim = column(comm, folder, w, total, (n_across, n_up), dt, speed, density, viscosity, rule=rule, passes=passes,
+                 coupling={"forcing": forcing, **filtered(coupling, d)})
     with_particles(sim, x, d / 2, 2500.0, FIXED)
-    steps = max(min_steps, int(np.ceil(flow_times * bed * d / (speed / porosity) / dt)))
+    steps = min(max_steps, max(min_steps, int(np.ceil(flow_times * bed * d / (speed / porosity) / dt))))
     history = np.empty(steps)
     start = wallclock.perf_counter()
     for i in range(steps):
@@ -134,3 +146,48 @@ def packed_bed(comm, folder: Path, cells_per_diameter: int, reynolds: float, dia
     return dict(reynolds=reynolds, porosity=porosity, gradient=float(history[-max(1, steps // 5):].mean()),
                 history=history, steps=steps, cells=sim.mesh.n_global_cells, particles=count, seconds=seconds,
                 speed=speed, diameter=d, density=density, viscosity=viscosity, dt=dt)
+
+
+COLLISIONS = "[collisions]\nrestitution = 0.9\nfriction = 0.1\n"
+
+
+def fluidized_bed(comm, folder: Path, speed: float, cells_per_diameter: int = 3, diameter: float = 0.003,
+                  particle_density: float = 2500.0, width: float = 4.0, packed: float = 6.0, height: float = 24.0,
+                  dt: float = 1e-3, duration: float = 2.0, average: float = 1.0, seed: int = 1,
+                  coupling: dict | None = None, density: float = 1000.0, viscosity: float = 1e-3) -> dict:
+    """Collective. A liquid-fluidized bed: free spheres (glass in water by default) packed at random
+    ``packed`` diameters deep on the inlet of a column ``width`` diameters square (symmetry sides,
+    mirror packing) and ``height`` diameters tall, fluidized by a uniform inlet ``speed`` (m/s), run
+    ``duration`` seconds; the bed's voidage from the particles' mean height z̄ (a uniform bed from the
+    inlet up to H = 2 z̄ holds N V_p in A H), averaged over the last ``average`` seconds.
+
+    Returns a dict: speed, voidage (ε over the averaging window), packed_voidage (at the start),
+    height (m, H averaged), packed_height, lowest (the lowest centre over the run, m), particles,
+    cells, steps, seconds (wall, the steps), history (t, H) per step."""
+    d = diameter
+    h = d / cells_per_diameter
+    n_across, n_up = int(round(width * cells_per_diameter)), int(round(height * cells_per_diameter))
+    w, total = n_across * h, n_up * h
+    count = int(0.45 * w * w * packed * d / (np.pi / 6 * d ** 3))
+    # particles meet symmetry planes as walls: packed clear of the sides
+    x = comm.bcast(random_packing(count, [0, 0, 0], [w, w, packed * d], d / 2, seed=seed) if comm.rank == 0 else None)
+    sim = column(comm, folder, w, total, (n_across, n_up), dt, speed, density, viscosity, passes=3,
+                 gravity=(0.0, 0.0, -9.81), coupling=filtered(coupling, d), collisions=COLLISIONS)
+    with_particles(sim, x, d / 2, particle_density, FREE)
+    solid = count * np.pi / 6 * d ** 3 / (w * w)           # the bed's height if it were solid (m)
+    steps = int(round(duration / dt))
+    history = np.empty((steps, 2))
+    lowest = float(x[:, 2].min())
+    start = wallclock.perf_counter()
+    for i in range(steps):
+        sim.advance(dt)
+        z = sim.state.particles.x[:, 2]
+        history[i] = sim.state.time, 2.0 * z.mean()
+        lowest = min(lowest, float(z.min()))
+    seconds = wallclock.perf_counter() - start
+    window = history[:, 0] > duration - average
+    bed = float(history[window, 1].mean())
+    return dict(speed=speed, voidage=1.0 - solid / bed, packed_voidage=1.0 - solid / (2.0 * x[:, 2].mean()),
+                height=bed, packed_height=2.0 * float(x[:, 2].mean()), lowest=lowest, particles=count,
+                remaining=len(sim.state.particles), cells=sim.mesh.n_global_cells, steps=steps, seconds=seconds,
+                history=history, diameter=d)

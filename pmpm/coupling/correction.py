@@ -33,57 +33,68 @@ from ..reference import beetstra_drag_factor, di_felice_drag_factor
 
 CORRELATIONS = {"beetstra": beetstra_drag_factor, "di_felice": di_felice_drag_factor}
 RATE_CAP = 1e3    # κ_x dt at most: the cells near the particle move with it to 1e-3
+GAIN = 0.1        # of the one-step gain ε: the force felt responds to κ_x more than S foresees
 
 
 class FilterBins:
-    """A lattice of filter bins over the domain's bounding box, each about ``width`` (m) wide, and
-    the bin of each owned cell. Built once; ``averages`` is collective, ``at`` local."""
+    """A lattice of bins about ``width``/3 wide over the domain's bounding box, the bin of each owned
+    cell, and blocks of 3 × 3 × 3 bins. A particle's filtered voidage and fluid flux are those of
+    the block centred on the bin that holds its centre (a box about ``width`` wide, so the box moves
+    with the particle in steps of a bin); the drag controller pools the particles of each block of
+    the coarse lattice (every third bin along each axis). Built once; ``block_averages`` is
+    collective, the rest local."""
 
     def __init__(self, mesh, width: float):
         self.comm, self.mesh = mesh.comm, mesh
         self.lower = np.asarray(mesh.lower, float)
         span = np.asarray(mesh.upper, float) - self.lower
-        self.counts = np.maximum(np.round(span / width).astype(np.int64), 1)
+        self.counts = np.maximum(np.round(3.0 * span / width).astype(np.int64), 1)
         self.size = span / self.counts
-        n_owned = mesh.n_owned_cells
-        index = np.clip(((mesh.cell_center[:n_owned] - self.lower) / self.size).astype(np.int64), 0, self.counts - 1)
-        self.cell_bin = np.ravel_multi_index(index.T, self.counts)
         self.n_bins = int(np.prod(self.counts))
+        self.pool_counts = -(-self.counts // 3)
+        self.n_pools = int(np.prod(self.pool_counts))
+        self.cell_bin = np.ravel_multi_index(self.index(mesh.cell_center[:mesh.n_owned_cells]).T, self.counts)
 
-    def averages(self, u: np.ndarray, alpha: np.ndarray, solid_velocity: np.ndarray):
-        """Collective. Per bin, the voidage ε (n_bins,) and the fluid's superficial velocity ε u_f
-        (n_bins, 3): the mean of the cell velocities ``u`` (fluid and solid alike: the volume flux) less
-        the solids' own, from the volume fractions ``alpha`` (n_owned,) and the particles' motion in each
-        cell weighted by their shares, ``solid_velocity`` (n_owned, 3) = Σ α U. (Weighting the cell
-        velocities by 1 − α instead misses the flow through the cut cells, a third of it in a packed bed
-        at 3 cells per diameter.)"""
+    def index(self, x: np.ndarray) -> np.ndarray:
+        """(n, 3) the lattice index of the bin holding each point (clamped to the lattice)."""
+        return np.clip(((x - self.lower) / self.size).astype(np.int64), 0, self.counts - 1)
+
+    def bin_of(self, x: np.ndarray) -> np.ndarray:
+        """(n,) the bin holding each point."""
+        return np.ravel_multi_index(self.index(x).T, self.counts)
+
+    def pool_of(self, x: np.ndarray) -> np.ndarray:
+        """(n,) the controller's pool (a block of the coarse lattice) holding each point."""
+        return np.ravel_multi_index((self.index(x) // 3).T, self.pool_counts)
+
+    def block_averages(self, u: np.ndarray, alpha: np.ndarray, solid_velocity: np.ndarray):
+        """Collective. Per bin, over the 3 × 3 × 3 bins around it: the voidage ε (n_bins,) and the
+        fluid's superficial velocity ε u_f (n_bins, 3), the mean of the cell velocities ``u`` (fluid
+        and solid alike: the volume flux) less the solids' own, from the volume fractions ``alpha``
+        (n_owned,) and the particles' motion in each cell weighted by their shares,
+        ``solid_velocity`` (n_owned, 3) = Σ α U. (Weighting the cell velocities by 1 − α instead
+        misses the flow through the cut cells, a third of it in a packed bed at 3 cells per
+        diameter.)"""
         n_owned = self.mesh.n_owned_cells
         volume = self.mesh.cell_volume[:n_owned]
         sums = np.zeros((5, self.n_bins))
         sums[0] = np.bincount(self.cell_bin, volume, minlength=self.n_bins)
         sums[1] = np.bincount(self.cell_bin, volume * np.minimum(alpha, 1.0), minlength=self.n_bins)
         for d in range(3):
-            flux = volume * (u[:n_owned, d] - solid_velocity[:, d])
-            sums[2 + d] = np.bincount(self.cell_bin, flux, minlength=self.n_bins)
+            sums[2 + d] = np.bincount(self.cell_bin, volume * (u[:n_owned, d] - solid_velocity[:, d]),
+                                      minlength=self.n_bins)
         if self.comm.size > 1:
             self.comm.Allreduce(MPI.IN_PLACE, sums, op=MPI.SUM)
-        total = np.maximum(sums[0], np.finfo(float).tiny)
-        return 1.0 - sums[1] / total, (sums[2:] / total).T
-
-    def at(self, x: np.ndarray, *fields: np.ndarray):
-        """Local. Each per-bin field interpolated trilinearly between bin centres to the points ``x``
-        (n, 3) (held constant beyond the outermost centres)."""
-        t = (x - self.lower) / self.size - 0.5
-        low = np.clip(np.floor(t).astype(np.int64), 0, np.maximum(self.counts - 2, 0))
-        frac = np.clip(t - low, 0.0, 1.0) * (self.counts > 1)
-        out = [np.zeros((len(x),) + f.shape[1:]) for f in fields]
-        for corner in range(8):
-            offset = np.array([(corner >> a) & 1 for a in range(3)])
-            weight = np.prod(np.where(offset == 1, frac, 1.0 - frac), axis=1)
-            index = np.ravel_multi_index((np.minimum(low + offset, self.counts - 1)).T, self.counts)
-            for o, f in zip(out, fields):
-                o += (weight if f.ndim == 1 else weight[:, None]) * f[index]
-        return out
+        nx, ny, nz = self.counts
+        padded = np.pad(sums.reshape(5, nx, ny, nz), ((0, 0), (1, 1), (1, 1), (1, 1)))
+        block = np.zeros((5, nx, ny, nz))
+        for i in range(3):          # 27 shifted views: the block sums without a loop over bins
+            for j in range(3):
+                for k in range(3):
+                    block += padded[:, i:i + nx, j:j + ny, k:k + nz]
+        block = block.reshape(5, -1)
+        total = np.maximum(block[0], np.finfo(float).tiny)
+        return 1.0 - block[1] / total, (block[2:] / total).T
 
 
 class DragCorrection:
@@ -96,24 +107,19 @@ class DragCorrection:
         self.bins = FilterBins(mesh, width)
         self.rho, self.mu = float(fluid_density), float(viscosity)
 
-    def particle_bins(self, x: np.ndarray) -> np.ndarray:
-        """(n,) the bin holding each centre (clamped to the lattice)."""
-        index = np.clip(((x - self.bins.lower) / self.bins.size).astype(np.int64), 0, self.bins.counts - 1)
-        return np.ravel_multi_index(index.T, self.bins.counts)
-
     def rates(self, state, memory) -> np.ndarray:
-        """(n,) κ_x (1/s) of each particle: its bin's, from the last step (0 before the first)."""
+        """(n,) κ_x (1/s) of each particle: its pool's, from the last step (0 before the first)."""
         if memory.correction_rate is None:
             return np.zeros(len(state))
-        return memory.correction_rate[self.particle_bins(state.x)]
+        return memory.correction_rate[self.bins.pool_of(state.x)]
 
     def slip(self, state, u: np.ndarray, alpha: np.ndarray, solid_velocity: np.ndarray, v: np.ndarray):
         """Collective. Each particle's local voidage ε (n,) and superficial slip U_s = ε (u_f − v) (n, 3),
-        ``v`` (n, 3) its velocity (``FilterBins.averages`` for the rest); and each bin's voidage."""
-        voidage, superficial = self.bins.averages(u, alpha, solid_velocity)
-        eps, fluid = self.bins.at(state.x, voidage, superficial)
-        eps = np.clip(eps, 0.3, 1.0)    # below a random close packing's voidage the bins are too coarse
-        return eps, fluid - eps[:, None] * v, voidage
+        ``v`` (n, 3) its velocity (``FilterBins.block_averages`` for the rest)."""
+        voidage, superficial = self.bins.block_averages(u, alpha, solid_velocity)
+        where = self.bins.bin_of(state.x)
+        eps = np.clip(voidage[where], 0.3, 1.0)    # below a random close packing's voidage the filter is too coarse
+        return eps, superficial[where] - eps[:, None] * v
 
     def target(self, state, eps: np.ndarray, superficial: np.ndarray):
         """The correlation's force on each particle along its slip, (n,) N, and the slip's direction (n, 3)."""
@@ -124,20 +130,23 @@ class DragCorrection:
         direction = superficial / np.maximum(speed, np.finfo(float).tiny)[:, None]
         return force, direction
 
-    def update(self, state, rate: np.ndarray, voidage: np.ndarray, target: np.ndarray, direction: np.ndarray,
+    def update(self, state, rate: np.ndarray, eps: np.ndarray, target: np.ndarray, direction: np.ndarray,
                force: np.ndarray, sensitivity: np.ndarray, dt: float) -> np.ndarray:
-        """(n_bins,) κ_x of each bin for the next step (``rate``: this step's): raised by
-        ε (Σ F_c − Σ F·ŝ)/Σ S where the drag the bin's particles felt, ``force`` (n, 3) along their slips
-        ``direction`` (n, 3), falls short of their correlation's ``target`` (n,), lowered where it
-        exceeds it, never below 0. ``sensitivity`` S (n,): a particle's force along ŝ per unit κ_x
-        (N s); ``voidage`` (n_bins,). The bin's mean drag is the correlation's (what a bed's pressure
-        drop measures); how it is shared among the particles, by their own flow, is resolved."""
-        n_bins = self.bins.n_bins
-        where = self.particle_bins(state.x)
+        """(n_pools,) κ_x of each pool for the next step (``rate``: this step's): raised by
+        g ε̄ (Σ F_c − Σ F·ŝ)/Σ S where the drag the pool's particles felt, ``force`` (n, 3) along their
+        slips ``direction`` (n, 3), falls short of their correlation's ``target`` (n,), lowered where
+        it exceeds it, never below 0. ``sensitivity`` S (n,): a particle's force along ŝ per unit κ_x
+        (N s); ``eps`` (n,) each particle's filtered voidage, ε̄ their mean in the pool; g = ``GAIN``.
+        The pool's mean drag is the correlation's (what a bed's pressure drop measures); how it is
+        shared among the particles, by their own flow, is resolved."""
+        n_bins = self.bins.n_pools
+        where = self.bins.pool_of(state.x)
+        count = np.bincount(where, minlength=n_bins)
+        voidage = np.bincount(where, eps, minlength=n_bins) / np.maximum(count, 1)
         felt = np.einsum("ij,ij->i", force, direction)
         deficit = np.bincount(where, target - felt, minlength=n_bins)
         response = np.bincount(where, sensitivity, minlength=n_bins)
         scale = np.bincount(where, target, minlength=n_bins)
         usable = response > 1e-12 * np.maximum(scale, np.finfo(float).tiny)
-        step = np.where(usable, voidage * deficit / np.where(usable, response, 1.0), 0.0)
+        step = np.where(usable, GAIN * voidage * deficit / np.where(usable, response, 1.0), 0.0)
         return np.clip(rate + step, 0.0, RATE_CAP / dt)

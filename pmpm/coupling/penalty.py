@@ -252,7 +252,7 @@ class PenaltyForcing:
 
     def corrected_rates(self, state: ParticleState, passes: PenaltyPasses, u: np.ndarray, v: np.ndarray,
                         force: np.ndarray, dt: float, memory: CouplingMemory) -> np.ndarray:
-        """Collective. The drag correction's κ_x per filter bin (n_bins,) for the next step, from the correlation's force at
+        """Collective. The drag correction's κ_x per pool of particles (n_pools,) for the next step, from the correlation's force at
         the local voidage and slip (particle velocities ``v`` (n, 3) at the step's end, flow ``u``), the
         drag ``force`` (n, 3) felt this step, and the force per unit κ_x in the particle's cells: the
         fluid share (1 − α) of each, its velocity relative to the particle, damped by the cell's own
@@ -262,7 +262,7 @@ class PenaltyForcing:
         alpha = alpha_per_cell(touched, n_owned)
         rigid = passes.solved_v[p] + np.cross(passes.solved_omega[p], self.mesh.cell_center[c] - state.x[p])
         solid = np.stack([np.bincount(c, touched.alpha * rigid[:, d], minlength=n_owned) for d in range(3)], axis=1)
-        eps, superficial, voidage = self.correction.slip(state, u, alpha, solid, v)
+        eps, superficial = self.correction.slip(state, u, alpha, solid, v)
         target, direction = self.correction.target(state, eps, superficial)
         target *= np.minimum(1.0, 1.0 / passes.under_scale)    # the share of a sphere cut by a symmetry plane
         kappa_cell = np.bincount(c, passes.kappa, minlength=n_owned)[c]
@@ -271,8 +271,8 @@ class PenaltyForcing:
         sensitivity = np.bincount(p, share, minlength=len(state))
         if self.comm.size > 1:
             self.comm.Allreduce(MPI.IN_PLACE, sensitivity, op=MPI.SUM)
-        rate = memory.correction_rate if memory.correction_rate is not None else np.zeros(self.correction.bins.n_bins)
-        return self.correction.update(state, rate, voidage, target, direction, force, sensitivity, dt)
+        rate = memory.correction_rate if memory.correction_rate is not None else np.zeros(self.correction.bins.n_pools)
+        return self.correction.update(state, rate, eps, target, direction, force, sensitivity, dt)
 
     def fluid_under(self, state: ParticleState, touched: Touched, u: np.ndarray, mass: np.ndarray,
                     x: np.ndarray | None = None, extra: np.ndarray | None = None):
