@@ -100,23 +100,12 @@ class CellLocator:
         return (np.einsum("mvd,mvd->mv", gap, gap) <= state.radius[particle, None] ** 2).mean(axis=1)
 
     def sampled_fraction(self, state, particle, cell) -> np.ndarray:
-        """Share of the cell's k³ sample points inside the sphere, per (particle, cell) pair. Only the
-        cells the surface may cut are sampled: a convex cell with every vertex inside the (convex)
-        sphere lies inside it (α = 1), one whose centre lies farther than the radius plus the cell's
-        reach (its centre's largest distance to a vertex) lies outside (α = 0)."""
-        gap = self.mesh.vertex_xyz[self.mesh.cell_vertices[cell]] - state.x[particle, None, :]   # (m, nv, 3)
-        radius2 = state.radius[particle] ** 2
-        alpha = (np.einsum("mvd,mvd->mv", gap, gap) <= radius2[:, None]).all(axis=1).astype(float)
-        centre = self.mesh.cell_center[cell] - state.x[particle]
-        distance = np.sqrt(np.einsum("md,md->m", centre, centre))
-        cut = np.flatnonzero((alpha < 1) & (distance < state.radius[particle] + self.cell_reach[cell]))
-        chunk = max(1, 2_000_000 // max(1, len(self.samples)))
-        for start in range(0, len(cut), chunk):
-            part = cut[start:start + chunk]
-            points = np.matmul(self.samples, gap[part])      # (m, k³, 3) from the centre (weights sum to 1)
-            inside = np.einsum("msd,msd->ms", points, points) <= radius2[part, None]
-            alpha[part] = inside.mean(axis=1)
-        return alpha
+        """Share of the cell's k³ sample points inside the sphere, per (particle, cell) pair; only the
+        cells the surface may cut are sampled (compiled: ``sampling.sampled_fraction``)."""
+        from .sampling import sampled_fraction     # numba, loaded by the first sub-cell step
+        mesh = self.mesh
+        return sampled_fraction(self.samples, mesh.vertex_xyz, mesh.cell_vertices, mesh.cell_center, self.cell_reach,
+                                state.x, state.radius, particle.astype(np.int64), cell.astype(np.int64))
 
 
 def alpha_per_cell(touched: Touched, n_owned: int) -> np.ndarray:
