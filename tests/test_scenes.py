@@ -71,7 +71,7 @@ def test_fluidized_bed(tmp_path):
     """Figure 10, 500 beads instead of 10,000 (make_particles.py's packing, φ = 0.5) in a column a
     third as wide and deep, 0.05 s: water from the inlet lifts the bed above the height it was
     poured to (its mean height grows by more than 4 % — 9 % measured —; Richardson & Zaki's voidage at this speed
-    is 0.62 against the pour's 0.5), and no bead passes the inlet, which particles meet as a wall
+    is 0.57 against the pour's 0.5), and no bead passes the inlet, which particles meet as a wall
     (the lowest centre stays a radius above it), nor leaves at all."""
     import sys
     sys.path.insert(0, str(ROOT / "cases" / "fluidized_bed"))

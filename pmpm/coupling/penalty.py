@@ -14,7 +14,9 @@ projected u, plus the change ΔP of the momentum of the fluid under it, over a c
 (``begin``: from where the last step left it). Each pass before the projection updates the guess of
 the particle's new motion, damped by the cells' own response so that light particles converge
 (``after_solve``); after the projection the step's impulse gives its velocities, drag and torque
-(``after_projection``). docs/coupling.md has the method's measurements.
+(``after_projection``). With ``drag_correction`` (``correction.py``) an extra rate κ_x acts on
+the fluid share of each particle's cells, and ``corrected_rates`` sets the next step's from the
+drag the particles felt. docs/coupling.md has the method's measurements.
 """
 from __future__ import annotations
 
@@ -23,6 +25,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from mpi4py import MPI
 
+from ..arrays import cross, sum_rows
 from ..fluid import FluidState
 from ..particles import ParticleState
 from .locate import CellLocator, Touched, alpha_per_cell, smooth_fraction
@@ -260,8 +263,8 @@ class PenaltyForcing:
         touched, n_owned = passes.touched, self.mesh.n_owned_cells
         p, c = touched.particle, touched.cell
         alpha = alpha_per_cell(touched, n_owned)
-        rigid = passes.solved_v[p] + np.cross(passes.solved_omega[p], self.mesh.cell_center[c] - state.x[p])
-        solid = np.stack([np.bincount(c, touched.alpha * rigid[:, d], minlength=n_owned) for d in range(3)], axis=1)
+        rigid = passes.solved_v[p] + cross(passes.solved_omega[p], self.mesh.cell_center[c] - state.x[p])
+        solid = sum_rows(c, touched.alpha[:, None] * rigid, n_owned)
         eps, superficial = self.correction.slip(state, u, alpha, solid, v)
         target, direction = self.correction.target(state, eps, superficial)
         target *= np.minimum(1.0, 1.0 / passes.under_scale)    # the share of a sphere cut by a symmetry plane
