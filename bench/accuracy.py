@@ -25,6 +25,7 @@ import numpy as np
 from mpi4py import MPI
 
 ROOT = Path(__file__).resolve().parents[1]
+OUT = ROOT / "bench" / "results"
 sys.path.insert(0, str(ROOT / "tests"))
 from test_coupling import stokes_run, ten_cate_run  # noqa: E402  (the validation cases, not copies)
 from suspension_cases import packed_bed  # noqa: E402
@@ -40,6 +41,20 @@ KNOBS = [  # forcing, cells per diameter, rule, forcing passes, diffusion number
 ]
 
 
+def write_csv(name: str, rows: list[dict]):
+    """Write ``rows`` (dicts with the same keys) as CSV to bench/results/``name``; return
+    matplotlib.pyplot (Agg) for the figure that goes with them."""
+    OUT.mkdir(parents=True, exist_ok=True)
+    with open(OUT / name, "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    return plt
+
+
 def main():
     if "--settling" in sys.argv:
         return settling()
@@ -47,8 +62,6 @@ def main():
         return body_fitted()
     if "--suspensions" in sys.argv:
         return suspensions()
-    out = ROOT / "bench" / "results"
-    out.mkdir(parents=True, exist_ok=True)
     rows = []
     for forcing, cpd, rule, passes, diffusion in KNOBS:
         folder = Path(tempfile.mkdtemp())
@@ -61,13 +74,7 @@ def main():
                          diffusion_number=diffusion, drag_error=ratio[2] - 1, wall_seconds=seconds))
         print(f"{forcing:8s} {cpd:3d} cells/d  {rule:8s} passes {passes}  ν dt/h² {diffusion:5.3f}:  "
               f"drag error {100 * (ratio[2] - 1):+6.2f} %   {seconds:6.1f} s", flush=True)
-    with open(out / "accuracy.csv", "w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=list(rows[0]))
-        writer.writeheader()
-        writer.writerows(rows)
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = write_csv("accuracy.csv", rows)
     fig, ax = plt.subplots(figsize=(6, 4))
     for forcing, rule, marker in (("penalty", "nodes", "o"), ("penalty", "subcell", "s"),
                                   ("patch", "nodes", "^"), ("patch", "subcell", "v")):
@@ -80,8 +87,8 @@ def main():
     ax.set_xscale("log"); ax.set_yscale("log")
     ax.set_xlabel("wall time to t = 4 h²/ν (s)"); ax.set_ylabel("|drag error| (%)")
     ax.set_title("Stokes drag: error against cost"); ax.legend()
-    fig.tight_layout(); fig.savefig(out / "accuracy.png", dpi=120)
-    print(f"wrote {out / 'accuracy.csv'} and {out / 'accuracy.png'}")
+    fig.tight_layout(); fig.savefig(OUT / "accuracy.png", dpi=120)
+    print(f"wrote {OUT / 'accuracy.csv'} and {OUT / 'accuracy.png'}")
     settling()
 
 
@@ -105,8 +112,7 @@ def suspensions(comm=MPI.COMM_WORLD):
             coupling = {} if correction == "off" else {"drag_correction": correction}
             start = time.perf_counter()
             result = packed_bed(comm, folder, cpd, reynolds, rule=rule, forcing=forcing, passes=passes,
-                                coupling=coupling, flow_times=1.0, min_steps=150, max_steps=300,
-                                cfl=0.3 if reynolds < 100 else 0.15)
+                                coupling=coupling, flow_times=1.0, min_steps=150, max_steps=300)
             seconds = time.perf_counter() - start
             ergun = float(ergun_pressure_drop(result["speed"], result["porosity"], result["diameter"],
                                               result["density"], result["viscosity"]))
@@ -120,15 +126,7 @@ def suspensions(comm=MPI.COMM_WORLD):
                       f"{seconds:6.1f} s ({rows[-1]['seconds_per_step']:.3f} s/step)", flush=True)
     if comm.rank:
         return
-    out = ROOT / "bench" / "results"
-    out.mkdir(parents=True, exist_ok=True)
-    with open(out / "suspensions_accuracy.csv", "w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=list(rows[0]))
-        writer.writeheader()
-        writer.writerows(rows)
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = write_csv("suspensions_accuracy.csv", rows)
     fig, axes = plt.subplots(1, 2, figsize=(10, 4), sharey=True)
     for ax, reynolds in zip(axes, (10.0, 100.0)):
         pick = [r for r in rows if r["reynolds"] == reynolds]
@@ -140,8 +138,8 @@ def suspensions(comm=MPI.COMM_WORLD):
         ax.set_xscale("log"); ax.set_yscale("log")
         ax.set_xlabel("wall time of the run (s, 1 rank)"); ax.set_title(f"packed bed against Ergun, Re {reynolds:.0f}")
     axes[0].set_ylabel("|−dp/dz error| (%)")
-    fig.tight_layout(); fig.savefig(out / "suspensions_accuracy.png", dpi=120)
-    print(f"wrote {out / 'suspensions_accuracy.csv'} and {out / 'suspensions_accuracy.png'}")
+    fig.tight_layout(); fig.savefig(OUT / "suspensions_accuracy.png", dpi=120)
+    print(f"wrote {OUT / 'suspensions_accuracy.csv'} and {OUT / 'suspensions_accuracy.png'}")
 
 
 SETTLING_CELLS_ACROSS = (27, 41)        # 4 and 6 cells per diameter in ten Cate's box; --fine adds 53 (8)
@@ -185,15 +183,7 @@ def settling(comm=MPI.COMM_WORLD):
                       f"{walled:.4f}; {seconds:.0f} s on {comm.size} rank(s)", flush=True)
     if comm.rank:
         return
-    out = ROOT / "bench" / "results"
-    out.mkdir(parents=True, exist_ok=True)
-    with open(out / "settling.csv", "w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=list(rows[0]))
-        writer.writeheader()
-        writer.writerows(rows)
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = write_csv("settling.csv", rows)
     fig, ax = plt.subplots(figsize=(6, 4))
     for k, (experiment, (_, _, measured)) in enumerate(TEN_CATE_2002.items()):
         colour = f"C{k}"
@@ -206,8 +196,8 @@ def settling(comm=MPI.COMM_WORLD):
     ax.set_xlabel("t (s)"); ax.set_ylabel("settling speed (m/s)")
     ax.set_title("ten Cate et al. 2002 (dotted: measured, dashed grey: body-fitted terminal speed)", fontsize=8)
     ax.legend(fontsize=6, ncol=2)
-    fig.tight_layout(); fig.savefig(out / "settling.png", dpi=120)
-    print(f"wrote {out / 'settling.csv'} and {out / 'settling.png'}")
+    fig.tight_layout(); fig.savefig(OUT / "settling.png", dpi=120)
+    print(f"wrote {OUT / 'settling.csv'} and {OUT / 'settling.png'}")
 
 
 def body_fitted(slower=0.92):

@@ -51,9 +51,8 @@ def write_csv(path: Path, rows: list[dict]) -> None:
 def ergun_row(cells_per_diameter: int, reynolds: float, correction: str, **options) -> dict:
     """One packed-bed run: the measured −dp/dz against Ergun's at the bed's own voidage."""
     coupling = {} if correction == "off" else {"drag_correction": correction}
-    # explicit convection at cell Reynolds numbers in the tens to hundreds in the pores: CFL 0.15 from Re 100
     result = packed_bed(MPI.COMM_WORLD, Path(tempfile.mkdtemp()), cells_per_diameter, reynolds, coupling=coupling,
-                        flow_times=1.0, min_steps=150, max_steps=300, cfl=0.3 if reynolds < 100 else 0.15, **options)
+                        flow_times=1.0, min_steps=150, max_steps=300, **options)
     ergun = float(ergun_pressure_drop(result["speed"], result["porosity"], DIAMETER, RHO_F, MU))
     tail = result["history"][-max(1, result["steps"] // 5):]
     return dict(cells_per_diameter=cells_per_diameter, reynolds=reynolds, correction=correction,
@@ -71,6 +70,7 @@ def ergun(quick: bool) -> list[dict]:
             for correction in CORRECTIONS:
                 row = ergun_row(cpd, reynolds, correction)
                 rows.append(row)
+                write_csv(OUT / "suspensions_ergun.csv", rows)      # as it goes: a long run keeps what it did
                 print0(f"{cpd:5d} {reynolds:6.0f}   {correction:10s} {row['porosity']:.3f}   {row['ratio']:6.3f}"
                        f"         {row['drift']:+.3f}  {row['steps']:5d} {row['cells']:6d}  {row['seconds_per_step']:.3f}")
     write_csv(OUT / "suspensions_ergun.csv", rows)
@@ -120,10 +120,12 @@ def fluidized() -> list[dict]:
                               coupling=coupling)
             reference = float(richardson_zaki_voidage(speed, u_t, n))
             rows.append(dict(speed=speed, correction=correction, voidage=r["voidage"], richardson_zaki=reference,
+                             n=n, terminal_speed=u_t,
                              error=r["voidage"] - reference, expansion=r["height"] / r["packed_height"],
                              packed_voidage=r["packed_voidage"], lowest_over_radius=r["lowest"] / (DIAMETER / 2),
                              particles=r["particles"], remaining=r["remaining"], cells=r["cells"], steps=r["steps"],
                              wall_seconds=r["seconds"], seconds_per_step=r["seconds"] / r["steps"]))
+            write_csv(OUT / "suspensions_fluidized.csv", rows)
             print0(f"{speed:6.3f}   {correction:10s}  {r['voidage']:.3f}       {reference:.3f}             "
                    f"{r['height'] / r['packed_height']:.3f}       {r['lowest'] / (DIAMETER / 2):.3f}"
                    f"           {r['seconds'] / r['steps']:.3f}")
