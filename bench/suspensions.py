@@ -6,8 +6,9 @@ against Richardson & Zaki at two inlet velocities. Writes bench/results/suspensi
 suspensions_fluidized.csv and suspensions.png, and prints the tables.
 
     .venv/bin/python bench/suspensions.py              # everything, about an hour on one core
-    .venv/bin/python bench/suspensions.py --ergun      # the packed bed only (--quick: 3 cells/d)
-    .venv/bin/python bench/suspensions.py --fluidized  # the fluidized bed only
+    .venv/bin/python bench/suspensions.py --ergun      # the packed bed only (--cells 3 --reynolds 1,10: those)
+    .venv/bin/python bench/suspensions.py --fluidized  # the fluidized bed only (--speeds 0.1: that one)
+    .venv/bin/python bench/suspensions.py --plot       # U_mf and the figure again from the CSVs
 
 The cases are tests/suspension_cases.py's (the tests run short versions of the same): a column
 4 diameters square with symmetry sides, d = 3 mm, water (ρ = 1000 kg/m³, μ = 1 mPa s), so the
@@ -48,6 +49,20 @@ def write_csv(path: Path, rows: list[dict]) -> None:
             writer.writerows(rows)
 
 
+def merge_csv(name: str, rows: list[dict], key) -> list[dict]:
+    """Write ``rows`` into bench/results/``name``, keeping the rows already there whose ``key`` (a
+    function of a row) none of ``rows`` has: parts of the sweep run apart (``--cells``,
+    ``--reynolds``, ``--speeds``) fill one table. Returns the table."""
+    mine = {key(r) for r in rows}
+    table = sorted([r for r in read_csv(name) if key(r) not in mine] + rows, key=key)
+    write_csv(OUT / name, table)
+    return table
+
+
+ERGUN_KEY = (lambda r: (float(r["cells_per_diameter"]), float(r["reynolds"]), r["correction"]))
+FLUIDIZED_KEY = (lambda r: (float(r["speed"]), r["correction"]))
+
+
 def ergun_row(cells_per_diameter: int, reynolds: float, correction: str, **options) -> dict:
     """One packed-bed run: the measured −dp/dz against Ergun's at the bed's own voidage."""
     coupling = {} if correction == "off" else {"drag_correction": correction}
@@ -62,19 +77,19 @@ def ergun_row(cells_per_diameter: int, reynolds: float, correction: str, **optio
                 seconds_per_step=result["seconds"] / result["steps"])
 
 
-def ergun(quick: bool) -> list[dict]:
-    rows = []
+def ergun(cells=(3, 4, 6), reynolds_numbers=REYNOLDS) -> list[dict]:
+    rows, table = [], []
     print0("cells/d  Re     correction  ε      −dp/dz / Ergun  drift   steps  cells   s/step  (1 rank)")
-    for cpd in (3,) if quick else (3, 4, 6):
-        for reynolds in REYNOLDS:
+    for cpd in cells:
+        for reynolds in reynolds_numbers:
             for correction in CORRECTIONS:
                 row = ergun_row(cpd, reynolds, correction)
                 rows.append(row)
-                write_csv(OUT / "suspensions_ergun.csv", rows)      # as it goes: a long run keeps what it did
+                if MPI.COMM_WORLD.rank == 0:     # as it goes: a long run keeps what it did
+                    table = merge_csv("suspensions_ergun.csv", rows, ERGUN_KEY)
                 print0(f"{cpd:5d} {reynolds:6.0f}   {correction:10s} {row['porosity']:.3f}   {row['ratio']:6.3f}"
                        f"         {row['drift']:+.3f}  {row['steps']:5d} {row['cells']:6d}  {row['seconds_per_step']:.3f}")
-    write_csv(OUT / "suspensions_ergun.csv", rows)
-    return rows
+    return MPI.COMM_WORLD.bcast(table)
 
 
 def minimum_fluidization(rows: list[dict]) -> list[dict]:
@@ -101,19 +116,20 @@ def minimum_fluidization(rows: list[dict]) -> list[dict]:
                             ratio_ergun=u_mf / ergun_mf))
     print0("\ncells/d  correction  U_mf (m/s)  / Wen & Yu (%.4f)  / Ergun at the bed's ε" % wen_yu)
     for r in out:
-        print0(f"{r['cells_per_diameter']:5d}   {r['correction']:10s}  {r['u_mf']:.4f}      {r['ratio_wen_yu']:.3f}"
+        print0(f"{int(r['cells_per_diameter']):5d}   {r['correction']:10s}  {r['u_mf']:.4f}      {r['ratio_wen_yu']:.3f}"
                f"               {r['ratio_ergun']:.3f} (ε = {r['porosity']:.3f})")
     return out
 
 
-def fluidized() -> list[dict]:
-    """The liquid-fluidized bed at two inlet velocities, with and without the correction."""
+def fluidized(speeds=FLUIDIZING) -> list[dict]:
+    """The liquid-fluidized bed at two inlet velocities (``speeds``), with and without the
+    correction."""
     u_t = float(terminal_velocity(RHO_P, RHO_F, MU, DIAMETER, G))
     n = float(richardson_zaki_exponent(RHO_F * u_t * DIAMETER / MU))
-    rows = []
+    rows, table = [], []
     print0(f"\nfluidized bed: U_t = {u_t:.4f} m/s (Schiller–Naumann), n = {n:.3f} (Garside & Al-Dibouni)")
     print0("U (m/s)  correction  ε measured  ε Richardson–Zaki  H/H_packed  lowest centre/r  s/step  (1 rank)")
-    for speed in FLUIDIZING:
+    for speed in speeds:
         for correction in CORRECTIONS:
             coupling = {} if correction == "off" else {"drag_correction": correction}
             r = fluidized_bed(MPI.COMM_WORLD, Path(tempfile.mkdtemp()), speed, duration=1.5, average=0.5,
@@ -125,12 +141,12 @@ def fluidized() -> list[dict]:
                              packed_voidage=r["packed_voidage"], lowest_over_radius=r["lowest"] / (DIAMETER / 2),
                              particles=r["particles"], remaining=r["remaining"], cells=r["cells"], steps=r["steps"],
                              wall_seconds=r["seconds"], seconds_per_step=r["seconds"] / r["steps"]))
-            write_csv(OUT / "suspensions_fluidized.csv", rows)
+            if MPI.COMM_WORLD.rank == 0:
+                table = merge_csv("suspensions_fluidized.csv", rows, FLUIDIZED_KEY)
             print0(f"{speed:6.3f}   {correction:10s}  {r['voidage']:.3f}       {reference:.3f}             "
                    f"{r['height'] / r['packed_height']:.3f}       {r['lowest'] / (DIAMETER / 2):.3f}"
                    f"           {r['seconds'] / r['steps']:.3f}")
-    write_csv(OUT / "suspensions_fluidized.csv", rows)
-    return rows
+    return MPI.COMM_WORLD.bcast(table)
 
 
 def plot(ergun_rows: list[dict], fluidized_rows: list[dict]) -> None:
@@ -168,19 +184,33 @@ def plot(ergun_rows: list[dict], fluidized_rows: list[dict]) -> None:
     figure.savefig(OUT / "suspensions.png", dpi=120)
 
 
+def read_csv(name: str) -> list[dict]:
+    """The rows of bench/results/``name`` (numbers as floats), or none if it is not there."""
+    path = OUT / name
+    if not path.exists():
+        return []
+    with open(path) as f:
+        return [{k: (v if k == "correction" else float(v)) for k, v in row.items()} for row in csv.DictReader(f)]
+
+
+def listed(option: str, default, kind=float):
+    """The comma-separated values after ``option`` on the command line, or ``default``."""
+    if option not in sys.argv:
+        return default
+    return tuple(kind(v) for v in sys.argv[sys.argv.index(option) + 1].split(","))
+
+
 def main():
     OUT.mkdir(parents=True, exist_ok=True)
-    only_ergun, only_fluidized = "--ergun" in sys.argv, "--fluidized" in sys.argv
-    ergun_rows, fluidized_rows = [], []
-    if not only_fluidized:
-        ergun_rows = ergun("--quick" in sys.argv)
-        minimum = minimum_fluidization(ergun_rows)
-        write_csv(OUT / "suspensions_minimum_fluidization.csv", minimum)
-    else:
-        with open(OUT / "suspensions_ergun.csv") as f:
-            ergun_rows = [{k: (v if k == "correction" else float(v)) for k, v in r.items()} for r in csv.DictReader(f)]
-    if not only_ergun:
-        fluidized_rows = fluidized()
+    ergun_rows, fluidized_rows = read_csv("suspensions_ergun.csv"), read_csv("suspensions_fluidized.csv")
+    if "--plot" in sys.argv:       # the tables and the figure again from the CSVs (parts run apart)
+        write_csv(OUT / "suspensions_minimum_fluidization.csv", minimum_fluidization(ergun_rows))
+        return plot(ergun_rows, fluidized_rows)
+    if "--fluidized" not in sys.argv:
+        ergun_rows = ergun(listed("--cells", (3, 4, 6), int), listed("--reynolds", REYNOLDS))
+        write_csv(OUT / "suspensions_minimum_fluidization.csv", minimum_fluidization(ergun_rows))
+    if "--ergun" not in sys.argv:
+        fluidized_rows = fluidized(listed("--speeds", FLUIDIZING))
     plot(ergun_rows, fluidized_rows)
 
 
