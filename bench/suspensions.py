@@ -7,7 +7,7 @@ suspensions_fluidized.csv and suspensions.png, and prints the tables.
 
     .venv/bin/python bench/suspensions.py              # everything, about an hour on one core
     .venv/bin/python bench/suspensions.py --ergun      # the packed bed only (--cells 3 --reynolds 1,10: those)
-    .venv/bin/python bench/suspensions.py --fluidized  # the fluidized bed only (--speeds 0.1: that one)
+    .venv/bin/python bench/suspensions.py --fluidized  # the fluidized bed only (--speeds 0.1 --corrections off: that one)
     .venv/bin/python bench/suspensions.py --plot       # U_mf and the figure again from the CSVs
 
 The cases are tests/suspension_cases.py's (the tests run short versions of the same): a column
@@ -121,7 +121,7 @@ def minimum_fluidization(rows: list[dict]) -> list[dict]:
     return out
 
 
-def fluidized(speeds=FLUIDIZING) -> list[dict]:
+def fluidized(speeds=FLUIDIZING, corrections=CORRECTIONS) -> list[dict]:
     """The liquid-fluidized bed at two inlet velocities (``speeds``), with and without the
     correction."""
     u_t = float(terminal_velocity(RHO_P, RHO_F, MU, DIAMETER, G))
@@ -130,9 +130,9 @@ def fluidized(speeds=FLUIDIZING) -> list[dict]:
     print0(f"\nfluidized bed: U_t = {u_t:.4f} m/s (Schiller–Naumann), n = {n:.3f} (Garside & Al-Dibouni)")
     print0("U (m/s)  correction  ε measured  ε Richardson–Zaki  H/H_packed  lowest centre/r  s/step  (1 rank)")
     for speed in speeds:
-        for correction in CORRECTIONS:
+        for correction in corrections:
             coupling = {} if correction == "off" else {"drag_correction": correction}
-            r = fluidized_bed(MPI.COMM_WORLD, Path(tempfile.mkdtemp()), speed, duration=1.5, average=0.5,
+            r = fluidized_bed(MPI.COMM_WORLD, Path(tempfile.mkdtemp()), speed, duration=1.0, average=0.4,
                               coupling=coupling)
             reference = float(richardson_zaki_voidage(speed, u_t, n))
             rows.append(dict(speed=speed, correction=correction, voidage=r["voidage"], richardson_zaki=reference,
@@ -210,7 +210,7 @@ def main():
         ergun_rows = ergun(listed("--cells", (3, 4, 6), int), listed("--reynolds", REYNOLDS))
         write_csv(OUT / "suspensions_minimum_fluidization.csv", minimum_fluidization(ergun_rows))
     if "--ergun" not in sys.argv:
-        fluidized_rows = fluidized(listed("--speeds", FLUIDIZING))
+        fluidized_rows = fluidized(listed("--speeds", FLUIDIZING), listed("--corrections", CORRECTIONS, str))
     plot(ergun_rows, fluidized_rows)
 
 

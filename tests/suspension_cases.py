@@ -32,6 +32,7 @@ type = "inlet"
 velocity = [0.0, 0.0, {speed}]
 [boundary.zmax]
 type = "outlet"
+particles = "wall"
 {sides}
 [coupling]
 volume_fraction = "{rule}"
@@ -46,7 +47,8 @@ def column(comm, folder: Path, width: float, height: float, cells: tuple[int, in
            density: float, viscosity: float, rule: str = "subcell", passes: int = 1, gravity=(0.0, 0.0, 0.0),
            coupling: dict | None = None, collisions: str = "") -> Simulation:
     """Collective. A square column ``width`` × ``width`` × ``height`` (m), ``cells`` = (across, up),
-    symmetry sides, a uniform inlet of ``speed`` (m/s) at the bottom and an outlet on top, no
+    symmetry sides, a uniform inlet of ``speed`` (m/s) at the bottom and an outlet on top (a screen:
+    particles meet it as a wall), no
     particles yet; the flow starts uniform at the inlet's speed. ``coupling``: more [coupling] keys."""
     extra = "".join(f"{key} = {value!r}\n".replace("'", '"') for key, value in (coupling or {}).items())
     text = COLUMN.format(dt=dt, gravity=list(gravity), width=width, height=height, n=cells[0], m=cells[1],
