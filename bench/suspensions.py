@@ -6,7 +6,7 @@ against Richardson & Zaki at two inlet velocities. Writes bench/results/suspensi
 suspensions_fluidized.csv and suspensions.png, and prints the tables.
 
     .venv/bin/python bench/suspensions.py              # everything, about an hour on one core
-    .venv/bin/python bench/suspensions.py --ergun      # the packed bed only (--cells 3 --reynolds 1,10: those)
+    .venv/bin/python bench/suspensions.py --ergun      # the packed bed only (--cells 3 --reynolds 1,10 --corrections off: those)
     .venv/bin/python bench/suspensions.py --fluidized  # the fluidized bed only (--speeds 0.1 --corrections off: that one)
     .venv/bin/python bench/suspensions.py --plot       # U_mf and the figure again from the CSVs
 
@@ -77,12 +77,12 @@ def ergun_row(cells_per_diameter: int, reynolds: float, correction: str, **optio
                 seconds_per_step=result["seconds"] / result["steps"])
 
 
-def ergun(cells=(3, 4, 6), reynolds_numbers=REYNOLDS) -> list[dict]:
+def ergun(cells=(3, 4, 6), reynolds_numbers=REYNOLDS, corrections=CORRECTIONS) -> list[dict]:
     rows, table = [], []
     print0("cells/d  Re     correction  ε      −dp/dz / Ergun  drift   steps  cells   s/step  (1 rank)")
     for cpd in cells:
         for reynolds in reynolds_numbers:
-            for correction in CORRECTIONS:
+            for correction in corrections:
                 row = ergun_row(cpd, reynolds, correction)
                 rows.append(row)
                 if MPI.COMM_WORLD.rank == 0:     # as it goes: a long run keeps what it did
@@ -207,7 +207,8 @@ def main():
         write_csv(OUT / "suspensions_minimum_fluidization.csv", minimum_fluidization(ergun_rows))
         return plot(ergun_rows, fluidized_rows)
     if "--fluidized" not in sys.argv:
-        ergun_rows = ergun(listed("--cells", (3, 4, 6), int), listed("--reynolds", REYNOLDS))
+        ergun_rows = ergun(listed("--cells", (3, 4, 6), int), listed("--reynolds", REYNOLDS),
+                           listed("--corrections", CORRECTIONS, str))
         write_csv(OUT / "suspensions_minimum_fluidization.csv", minimum_fluidization(ergun_rows))
     if "--ergun" not in sys.argv:
         fluidized_rows = fluidized(listed("--speeds", FLUIDIZING), listed("--corrections", CORRECTIONS, str))

@@ -37,8 +37,8 @@ from .patch import PatchForcing
 from .penalty import PenaltyForcing
 from .update import Exchange, External
 
-__all__ = ["CellLocator", "CouplingMemory", "DragCorrection", "Exchange", "External", "PatchForcing", "PenaltyForcing", "Touched",
-           "alpha_per_cell", "build_forcing", "shared_alpha", "smooth_fraction", "volume_fraction"]
+__all__ = ["CellLocator", "CouplingMemory", "DragCorrection", "Exchange", "External", "PatchForcing", "PenaltyForcing",
+           "Touched", "alpha_per_cell", "build_forcing", "shared_alpha", "smooth_fraction", "volume_fraction"]
 
 
 def build_forcing(mesh, section, fluid, diameter: float = 0.0) -> PenaltyForcing | PatchForcing:

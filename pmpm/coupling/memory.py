@@ -18,8 +18,8 @@ class CouplingMemory:
         centre), (m, 3) that centre (m); the start of the next step's change, by id
     last_change, ringing : the explicit update's watchdog, per particle row: the last step's
         velocity change (n, 3) m/s and how many steps in a row it flipped sign and grew (n,)
-    correction_rate : the drag correction's extra rate κ_x (1/s) of each filter bin (n_bins,), for the
-        next step
+    correction_rate : the drag correction's extra rate κ_x (1/s) of each pool of particles
+        (n_pools,), for the next step
     """
 
     known_id: int = -1

@@ -59,7 +59,6 @@ class PenaltyPasses:
     solved_v, solved_omega : (n, 3) the motion the last solve drove it towards
     exchanged : (n, 6) J of the last solve; response, response_spin : (n,) the cells' response M_c;
     exchange_weight : (m,) ρ V × the rate of the exchange per pair (J = Σ weight (u − U))
-    correction : (n,) the drag correction's extra rate κ_x of each particle this step (None: off)
     """
 
     touched: Touched
@@ -75,7 +74,6 @@ class PenaltyPasses:
     response: np.ndarray | None = None
     response_spin: np.ndarray | None = None
     exchange_weight: np.ndarray | None = None
-    correction: np.ndarray | None = None
 
 
 class PenaltyForcing:
@@ -115,11 +113,9 @@ class PenaltyForcing:
         thrust. "Under" weighs each cell by a smooth fraction, not α, whose jumps as sample points
         cross the surface made light particles ring. The flow is returned as it came."""
         kappa = self.penalty_rates(touched, self.relative_speed(state, touched, fluid.u))
-        correction = None
         if self.correction is not None:   # the extra rate acts on the fluid share of the particle's cells
-            correction = self.correction.rates(state, memory)
             total = alpha_per_cell(touched, self.mesh.n_owned_cells)[touched.cell]
-            kappa = kappa + correction[touched.particle] * (1.0 - np.minimum(total, 1.0))
+            kappa = kappa + self.correction.rates(state, memory)[touched.particle] * (1.0 - np.minimum(total, 1.0))
         under_mass = self.rho * smooth_fraction(self.mesh, self.locator.h2, state, touched) \
             * self.mesh.cell_volume[touched.cell]
         internal_start, under_scale = self.fluid_under(state, touched, fluid.u, under_mass)
@@ -131,8 +127,7 @@ class PenaltyForcing:
             # its moment about where the centre is now: L' = L − (x' − x) × P
             start[:, 3:] -= np.cross(state.x[same] - centre[position[same]], start[:, :3])
             internal_start[same] = start
-        return PenaltyPasses(touched, kappa, under_mass, under_scale, internal_start, state.v, state.omega,
-                             correction=correction), fluid
+        return PenaltyPasses(touched, kappa, under_mass, under_scale, internal_start, state.v, state.omega), fluid
 
     def penalty_rates(self, touched: Touched, speed: np.ndarray) -> np.ndarray:
         """κ (1/s) of each (particle, cell) pair, from the cell's total volume fraction α, shared among
@@ -255,11 +250,11 @@ class PenaltyForcing:
 
     def corrected_rates(self, state: ParticleState, passes: PenaltyPasses, u: np.ndarray, v: np.ndarray,
                         force: np.ndarray, dt: float, memory: CouplingMemory) -> np.ndarray:
-        """Collective. The drag correction's κ_x per pool of particles (n_pools,) for the next step, from the correlation's force at
-        the local voidage and slip (particle velocities ``v`` (n, 3) at the step's end, flow ``u``), the
-        drag ``force`` (n, 3) felt this step, and the force per unit κ_x in the particle's cells: the
-        fluid share (1 − α) of each, its velocity relative to the particle, damped by the cell's own
-        implicit response 1/(1 + κ dt)."""
+        """Collective. The drag correction's κ_x per pool of particles (n_pools,) for the next step,
+        from the correlation's force at the local voidage and slip (particle velocities ``v`` (n, 3)
+        at the step's end, flow ``u``), the drag ``force`` (n, 3) felt this step, and the force per
+        unit κ_x in the particle's cells: the fluid share (1 − α) of each, its velocity relative to
+        the particle, damped by the cell's own implicit response 1/(1 + κ dt)."""
         touched, n_owned = passes.touched, self.mesh.n_owned_cells
         p, c = touched.particle, touched.cell
         alpha = alpha_per_cell(touched, n_owned)
@@ -274,7 +269,8 @@ class PenaltyForcing:
         sensitivity = np.bincount(p, share, minlength=len(state))
         if self.comm.size > 1:
             self.comm.Allreduce(MPI.IN_PLACE, sensitivity, op=MPI.SUM)
-        rate = memory.correction_rate if memory.correction_rate is not None else np.zeros(self.correction.bins.n_pools)
+        rate = memory.correction_rate
+        rate = np.zeros(self.correction.bins.n_pools) if rate is None else rate
         return self.correction.update(state, rate, eps, target, direction, force, sensitivity, dt)
 
     def fluid_under(self, state: ParticleState, touched: Touched, u: np.ndarray, mass: np.ndarray,
