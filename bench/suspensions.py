@@ -121,7 +121,7 @@ def minimum_fluidization(rows: list[dict]) -> list[dict]:
     return out
 
 
-def fluidized(speeds=FLUIDIZING, corrections=CORRECTIONS) -> list[dict]:
+def fluidized(speeds=FLUIDIZING, corrections=CORRECTIONS, dt: float = 1e-3) -> list[dict]:
     """The liquid-fluidized bed at two inlet velocities (``speeds``), with and without the
     correction."""
     u_t = float(terminal_velocity(RHO_P, RHO_F, MU, DIAMETER, G))
@@ -132,10 +132,14 @@ def fluidized(speeds=FLUIDIZING, corrections=CORRECTIONS) -> list[dict]:
     for speed in speeds:
         for correction in corrections:
             coupling = {} if correction == "off" else {"drag_correction": correction}
-            r = fluidized_bed(MPI.COMM_WORLD, Path(tempfile.mkdtemp()), speed, duration=1.0, average=0.4,
-                              coupling=coupling)
+            try:
+                r = fluidized_bed(MPI.COMM_WORLD, Path(tempfile.mkdtemp()), speed, dt=dt, duration=1.0, average=0.4,
+                                  coupling=coupling)
+            except ValueError:      # every particle gone: the run blew up
+                print0(f"{speed:6.3f}   {correction:10s}  blew up (dt = {dt:g} s): every particle left the domain")
+                continue
             reference = float(richardson_zaki_voidage(speed, u_t, n))
-            rows.append(dict(speed=speed, correction=correction, voidage=r["voidage"], richardson_zaki=reference,
+            rows.append(dict(speed=speed, correction=correction, dt=dt, voidage=r["voidage"], richardson_zaki=reference,
                              n=n, terminal_speed=u_t,
                              error=r["voidage"] - reference, expansion=r["height"] / r["packed_height"],
                              packed_voidage=r["packed_voidage"], lowest_over_radius=r["lowest"] / (DIAMETER / 2),
@@ -211,7 +215,8 @@ def main():
                            listed("--corrections", CORRECTIONS, str))
         write_csv(OUT / "suspensions_minimum_fluidization.csv", minimum_fluidization(ergun_rows))
     if "--ergun" not in sys.argv:
-        fluidized_rows = fluidized(listed("--speeds", FLUIDIZING), listed("--corrections", CORRECTIONS, str))
+        fluidized_rows = fluidized(listed("--speeds", FLUIDIZING), listed("--corrections", CORRECTIONS, str),
+                                   listed("--dt", (1e-3,))[0])
     plot(ergun_rows, fluidized_rows)
 
 
