@@ -5,7 +5,7 @@ that bed (glass beads, 3 mm, in water) against Wen & Yu; the expansion of the li
 against Richardson & Zaki at two inlet velocities. Writes bench/results/suspensions_ergun.csv,
 suspensions_fluidized.csv and suspensions.png, and prints the tables.
 
-    .venv/bin/python bench/suspensions.py              # everything, about an hour on one core
+    .venv/bin/python bench/suspensions.py              # everything: about 2 h on one core of the loaded machine
     .venv/bin/python bench/suspensions.py --ergun      # the packed bed only (--cells 3 --reynolds 1,10 --corrections off: those)
     .venv/bin/python bench/suspensions.py --fluidized  # the fluidized bed only (--speeds 0.1 --corrections off: that one)
     .venv/bin/python bench/suspensions.py --plot       # U_mf and the figure again from the CSVs
@@ -135,8 +135,8 @@ def fluidized(speeds=FLUIDIZING, corrections=CORRECTIONS, dt: float = 1e-3) -> l
             try:
                 r = fluidized_bed(MPI.COMM_WORLD, Path(tempfile.mkdtemp()), speed, dt=dt, duration=1.0, average=0.4,
                                   coupling=coupling)
-            except ValueError:      # every particle gone: the run blew up
-                print0(f"{speed:6.3f}   {correction:10s}  blew up (dt = {dt:g} s): every particle left the domain")
+            except ValueError as error:      # every particle gone: the run blew up
+                print0(f"{speed:6.3f}   {correction:10s}  blew up (dt = {dt:g} s): {error}")
                 continue
             reference = float(richardson_zaki_voidage(speed, u_t, n))
             rows.append(dict(speed=speed, correction=correction, dt=dt, voidage=r["voidage"], richardson_zaki=reference,

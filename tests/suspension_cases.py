@@ -48,8 +48,8 @@ def column(comm, folder: Path, width: float, height: float, cells: tuple[int, in
            coupling: dict | None = None, collisions: str = "") -> Simulation:
     """Collective. A square column ``width`` × ``width`` × ``height`` (m), ``cells`` = (across, up),
     symmetry sides, a uniform inlet of ``speed`` (m/s) at the bottom and an outlet on top (a screen:
-    particles meet it as a wall), no
-    particles yet; the flow starts uniform at the inlet's speed. ``coupling``: more [coupling] keys."""
+    particles meet it as a wall), no particles yet; the flow starts uniform at the inlet's speed.
+    ``coupling``: more [coupling] keys."""
     extra = "".join(f"{key} = {value!r}\n".replace("'", '"') for key, value in (coupling or {}).items())
     text = COLUMN.format(dt=dt, gravity=list(gravity), width=width, height=height, n=cells[0], m=cells[1],
                          rho_f=density, mu=viscosity, speed=speed, sides=SIDES, rule=rule, passes=passes,
@@ -122,9 +122,8 @@ def packed_bed(comm, folder: Path, cells_per_diameter: int, reynolds: float, dia
     Reynolds number ``reynolds`` = ρ U d/μ (U superficial). The pressure gradient is measured over
     the bed less ``porosity_section`` diameters at each end, the voidage ε there exactly (on a fine
     lattice). The step is the smaller of ``cfl`` h/(U/ε) (default ``bed_cfl``) and
-    ``diffusion_number`` h²/ν; the run
-    lasts ``flow_times`` passages of the bed at the interstitial speed U/ε, at least ``min_steps``
-    and at most ``max_steps`` steps.
+    ``diffusion_number`` h²/ν; the run lasts ``flow_times`` passages of the bed at the interstitial
+    speed U/ε, at least ``min_steps`` and at most ``max_steps`` steps.
 
     Returns a dict: reynolds, porosity, gradient (−dp/dz, Pa/m), its history per step, steps,
     cells, particles, seconds (wall, this run's steps)."""
@@ -168,13 +167,14 @@ def fluidized_bed(comm, folder: Path, speed: float, cells_per_diameter: int = 3,
                   coupling: dict | None = None, density: float = 1000.0, viscosity: float = 1e-3) -> dict:
     """Collective. A liquid-fluidized bed: free spheres (glass in water by default) packed at random
     ``packed`` diameters deep on the inlet of a column ``width`` diameters square (symmetry sides,
-    mirror packing) and ``height`` diameters tall, fluidized by a uniform inlet ``speed`` (m/s), run
+    which particles meet as walls) and ``height`` diameters tall, fluidized by a uniform inlet ``speed`` (m/s), run
     ``duration`` seconds; the bed's voidage from the particles' mean height z̄ (a uniform bed from the
     inlet up to H = 2 z̄ holds N V_p in A H), averaged over the last ``average`` seconds.
 
     Returns a dict: speed, voidage (ε over the averaging window), packed_voidage (at the start),
     height (m, H averaged), packed_height, lowest (the lowest centre over the run, m), particles,
-    cells, steps, seconds (wall, the steps), history (t, H) per step."""
+    cells, steps, seconds (wall, the steps), history (t, H) per step. Raises ValueError if every
+    particle has left the domain (a run that blew up)."""
     d = diameter
     h = d / cells_per_diameter
     n_across, n_up = int(round(width * cells_per_diameter)), int(round(height * cells_per_diameter))
@@ -193,6 +193,8 @@ def fluidized_bed(comm, folder: Path, speed: float, cells_per_diameter: int = 3,
     for i in range(steps):
         sim.advance(dt)
         z = sim.state.particles.x[:, 2]
+        if len(z) == 0:
+            raise ValueError(f"every particle left the domain by t = {sim.state.time:g} s")
         history[i] = sim.state.time, 2.0 * z.mean()
         lowest = min(lowest, float(z.min()))
     seconds = wallclock.perf_counter() - start
