@@ -194,7 +194,7 @@ def read_csv(name: str) -> list[dict]:
     if not path.exists():
         return []
     with open(path) as f:
-        return [{k: (v if k == "correction" else float(v)) for k, v in row.items()} for row in csv.DictReader(f)]
+        return [{k: (v if k == "correction" else float(v or "nan")) for k, v in row.items()} for row in csv.DictReader(f)]
 
 
 def listed(option: str, default, kind=float):
