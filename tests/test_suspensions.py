@@ -24,8 +24,9 @@ def ergun_ratio(comm, folder, reynolds, correction="off"):
 
 def test_packed_bed_at_three_cells_per_diameter_is_under_resolved(tmp_path):
     """At 3 cells per diameter a pore is about a cell wide: the resolved pressure drop at Re 10 is
-    about half of Ergun's (bench: 0.53 at 3, rising with resolution). The test holds it between
-    0.35 and 0.75 of Ergun, so a change that resolves the bed (or loses it) is seen."""
+    about half of Ergun's (this short bed: 0.53; the bench's: 0.53, rising with resolution). The
+    test holds it between 0.35 and 0.75 of Ergun, so a change that resolves the bed (or loses it)
+    is seen."""
     ratio, result = ergun_ratio(MPI.COMM_WORLD, tmp_path, 10.0)
     assert 0.38 < result["porosity"] < 0.46
     assert 0.35 < ratio < 0.75
@@ -33,8 +34,8 @@ def test_packed_bed_at_three_cells_per_diameter_is_under_resolved(tmp_path):
 
 def test_drag_correction_brings_the_packed_bed_to_ergun(tmp_path):
     """With ``drag_correction = "di_felice"`` the same bed's pressure drop is Ergun's within 12 %
-    at Re 10 (Di Felice's correlation lies within a few per cent of Ergun's there; Ergun's own data
-    scatter by about ±20 %)."""
+    at Re 10 (measured 1.00; Di Felice's correlation lies 11 % below Ergun's there, Ergun's own
+    data scatter by about ±20 %)."""
     ratio, _ = ergun_ratio(MPI.COMM_WORLD, tmp_path, 10.0, "di_felice")
     assert ratio == pytest.approx(1.0, abs=0.12)
 
@@ -42,7 +43,7 @@ def test_drag_correction_brings_the_packed_bed_to_ergun(tmp_path):
 def test_corrected_bed_carries_its_weight_at_wen_and_yus_minimum_fluidization(tmp_path):
     """At Wen & Yu's minimum fluidization velocity of 2500 kg/m³ glass beads (3 mm, water:
     U_mf = 33 mm/s, Re_mf = 98), the corrected bed's pressure drop is its buoyant weight
-    (1 − ε)(ρp − ρf) g within 30 % (Wen & Yu's fit scatters by ±34 %)."""
+    (1 − ε)(ρp − ρf) g within 30 % (measured 0.94; Wen & Yu's fit scatters by ±34 %)."""
     u_mf = float(wen_yu_minimum_fluidization(2500.0, 1000.0, 1e-3, 0.003))
     _, result = ergun_ratio(MPI.COMM_WORLD, tmp_path, 1000.0 * u_mf * 0.003 / 1e-3, "di_felice")
     weight = (1 - result["porosity"]) * 1500.0 * 9.81
