@@ -109,6 +109,13 @@ SCHEMA: dict[str, tuple[Key, ...]] = {
         Key("update", "str", "implicit", choices=("implicit", "explicit"),
             help="implicit: stable for light particles (measured to ρp/ρf = 0.3); explicit: the paper's, "
                  "rings below ρp/ρf ≈ 0.5–1.2 (docs/coupling.md)"),
+        Key("drag_correction", "str", "off", choices=("off", "di_felice", "beetstra"),
+            help="dense beds on a few cells per diameter: raise the particles' drag to Di Felice's (1994) or "
+                 "Beetstra et al.'s (2007) correlation at the local voidage where the resolved drag falls short "
+                 "(penalty forcing, two-way; docs/coupling.md, \"Dense suspensions\")"),
+        Key("correction_filter", "float", None, ">0", unit="m",
+            help="drag_correction: the width of the box over which each particle's voidage and slip are averaged "
+                 "(default: 3 × the largest particle diameter of the case)"),
     ),
     "particles": (
         Key("file", "str", None, help="ASCII particle file: x y z [vx vy vz wx wy wz] radius density"),
@@ -509,6 +516,12 @@ def check_consistency(case: Case) -> None:
         if b.type == "wall" and b.particles == "pass":
             raise CaseError(f"{name}: [boundary.{bname}] particles = \"pass\": particles cannot pass a wall; make the "
                             "boundary an outlet (or an inlet) to let them through")
+    coupling = case.coupling
+    if coupling is not None and coupling.drag_correction != "off" and \
+            (coupling.forcing != "penalty" or coupling.mode != "two-way"):
+        raise CaseError(f"{name}: [coupling] drag_correction = \"{coupling.drag_correction}\" acts through the "
+                        f"penalty's rates: it needs forcing = \"penalty\" and mode = \"two-way\" (here forcing = "
+                        f"\"{coupling.forcing}\", mode = \"{coupling.mode}\")")
     needs = {"box": ("size",), "cylinder": ("radius", "length"), "surface": ("file",)}
     for i, body in enumerate(case.bodies):
         missing = [key for key in needs[body.shape] if getattr(body, key) is None]

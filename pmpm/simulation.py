@@ -97,7 +97,8 @@ def build_model(comm, case: Case, mesh: Mesh) -> Model:
     bodies = build_bodies(case)
     if case.fluid is not None:
         flow = FlowSolver(mesh, case.fluid, case.boundaries)
-        forcing = build_forcing(mesh, case.coupling, case.fluid)
+        corrected = case.coupling.drag_correction != "off"
+        forcing = build_forcing(mesh, case.coupling, case.fluid, largest_diameter(case) if corrected else 0.0)
         if bodies:
             body_forcing = BodyForcing(mesh, bodies, case.coupling, case.fluid.density, case.fluid.viscosity)
     # which boundary each particle that leaves crosses (only where particles can be)
@@ -105,6 +106,13 @@ def build_model(comm, case: Case, mesh: Mesh) -> Model:
     exit_triangles = exit_triangles_of(case, mesh) if flow is None and comm.size > 1 else None
     return Model(comm, case, mesh, flow, forcing, build_injectors(case),
                  collision_settings(case) if case.collisions else None, bodies, body_forcing, exits, exit_triangles)
+
+
+def largest_diameter(case: Case) -> float:
+    """The largest particle diameter (m) among the case's particles and injections (0 if none)."""
+    radii = [float(initial_particles(case).radius.max(initial=0.0))]
+    radii += [injection.radius for injection in case.injections]
+    return 2.0 * max(radii)
 
 
 def initial_state(model: Model) -> RunState:

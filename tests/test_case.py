@@ -103,6 +103,13 @@ def test_override_applies_to_raw_table():
     (("[[particles.add]]", '[[injection]]\nkind = "random"\nlower = [0, 0, 0.1]\nupper = [0.1, 0.1, 0.05]\n'
       'interval = 0.1\nradius = 0.001\ndensity = 1.0\n[[particles.add]]'),
      "[[injection]] #0: lower = [0.0, 0.0, 0.1] must not exceed upper = [0.1, 0.1, 0.05] in any direction"),
+    (("[[particles.add]]", '[coupling]\nforcing = "patch"\ndrag_correction = "di_felice"\n[[particles.add]]'),
+     '[coupling] drag_correction = "di_felice" acts through the penalty\'s rates: it needs forcing = "penalty" and '
+     'mode = "two-way" (here forcing = "patch", mode = "two-way")'),
+    (("[[particles.add]]", '[coupling]\ndrag_correction = "ergun"\n[[particles.add]]'),
+     '[coupling] drag_correction = "ergun"'),
+    (("[[particles.add]]", '[coupling]\ncorrection_filter = -0.01\n[[particles.add]]'),
+     "[coupling] correction_filter = -0.01"),
 ])
 def test_values_that_cannot_run_are_refused(tmp_path, change, message):
     with pytest.raises(CaseError) as error:

@@ -28,18 +28,28 @@ its copy of the particles. docs/coupling.md has the method's measurements.
 """
 from __future__ import annotations
 
+import numpy as np
+
+from .correction import DragCorrection
 from .locate import CellLocator, Touched, alpha_per_cell, shared_alpha, smooth_fraction, volume_fraction
 from .memory import CouplingMemory
 from .patch import PatchForcing
 from .penalty import PenaltyForcing
 from .update import Exchange, External
 
-__all__ = ["CellLocator", "CouplingMemory", "Exchange", "External", "PatchForcing", "PenaltyForcing", "Touched",
-           "alpha_per_cell", "build_forcing", "shared_alpha", "smooth_fraction", "volume_fraction"]
+__all__ = ["CellLocator", "CouplingMemory", "DragCorrection", "Exchange", "External", "PatchForcing", "PenaltyForcing",
+           "Touched", "alpha_per_cell", "build_forcing", "shared_alpha", "smooth_fraction", "volume_fraction"]
 
 
-def build_forcing(mesh, section, fluid) -> PenaltyForcing | PatchForcing:
-    """The forcing the case's [coupling] section asks for, on ``mesh``, for the [fluid] ``fluid``."""
+def build_forcing(mesh, section, fluid, diameter: float = 0.0) -> PenaltyForcing | PatchForcing:
+    """The forcing the case's [coupling] section asks for, on ``mesh``, for the [fluid] ``fluid``;
+    ``diameter``: the largest particle diameter of the case (m), which sets the drag correction's
+    default filter width."""
     if section.forcing == "penalty":
-        return PenaltyForcing(mesh, section, fluid.density, fluid.viscosity)
+        correction = None
+        if section.drag_correction != "off":
+            width = section.correction_filter or 3.0 * diameter
+            correction = DragCorrection(mesh, section.drag_correction, width if width > 0 else np.inf,
+                                        fluid.density, fluid.viscosity)
+        return PenaltyForcing(mesh, section, fluid.density, fluid.viscosity, correction)
     return PatchForcing(mesh, section, fluid.density)

@@ -61,6 +61,7 @@ class CellLocator:
         corners = mesh.vertex_xyz[owned_vertices]
         self.cell_diameter = float(np.linalg.norm(corners.max(axis=1) - corners.min(axis=1), axis=1).max(initial=0))
         self.h2 = mesh.cell_volume[:n_owned] ** (2 / 3)     # squared cell size h²
+        self.cell_reach = np.linalg.norm(corners - mesh.cell_center[:n_owned, None, :], axis=2).max(axis=1, initial=0)
         self.samples = reference_samples(mesh.cell_type, subcell_points) if rule == "subcell" else None
 
     def locate(self, state: ParticleState) -> Touched:
@@ -99,21 +100,12 @@ class CellLocator:
         return (np.einsum("mvd,mvd->mv", gap, gap) <= state.radius[particle, None] ** 2).mean(axis=1)
 
     def sampled_fraction(self, state, particle, cell) -> np.ndarray:
-        """Share of the cell's k³ sample points inside the sphere, per (particle, cell) pair."""
-        corners = self.mesh.vertex_xyz[self.mesh.cell_vertices[cell]]            # (m, nv, 3)
-        gap = corners - state.x[particle, None, :]
-        vertex_inside = np.einsum("mvd,mvd->mv", gap, gap) <= state.radius[particle, None] ** 2
-        # a convex cell with every vertex inside the (convex) sphere lies inside it: α = 1, no sampling
-        alpha = vertex_inside.all(axis=1).astype(float)
-        cut = np.flatnonzero(alpha < 1)
-        chunk = max(1, 2_000_000 // max(1, len(self.samples)))
-        for start in range(0, len(cut), chunk):
-            part = cut[start:start + chunk]
-            points = np.einsum("sv,mvd->msd", self.samples, corners[part])     # (m, k³, 3)
-            gap = points - state.x[particle[part], None, :]
-            inside = np.einsum("msd,msd->ms", gap, gap) <= state.radius[particle[part], None] ** 2
-            alpha[part] = inside.mean(axis=1)
-        return alpha
+        """Share of the cell's k³ sample points inside the sphere, per (particle, cell) pair; only the
+        cells the surface may cut are sampled (compiled: ``sampling.sampled_fraction``)."""
+        from .sampling import sampled_fraction     # numba, loaded by the first sub-cell step
+        mesh = self.mesh
+        return sampled_fraction(self.samples, mesh.vertex_xyz, mesh.cell_vertices, mesh.cell_center, self.cell_reach,
+                                state.x, state.radius, particle.astype(np.int64), cell.astype(np.int64))
 
 
 def alpha_per_cell(touched: Touched, n_owned: int) -> np.ndarray:

@@ -18,6 +18,8 @@ class CouplingMemory:
         centre), (m, 3) that centre (m); the start of the next step's change, by id
     last_change, ringing : the explicit update's watchdog, per particle row: the last step's
         velocity change (n, 3) m/s and how many steps in a row it flipped sign and grew (n,)
+    correction_rate : the drag correction's extra rate κ_x (1/s) of each pool of particles
+        (n_pools,), for the next step
     """
 
     known_id: int = -1
@@ -26,11 +28,12 @@ class CouplingMemory:
     under_centre: np.ndarray | None = None
     last_change: np.ndarray | None = None
     ringing: np.ndarray | None = None
+    correction_rate: np.ndarray | None = None
 
     def to_arrays(self) -> dict:
         """The arrays to store (absent parts left out)."""
         arrays = {"known_id": np.array(self.known_id, np.int64)}
-        for name in ("under_id", "under_momentum", "under_centre", "last_change", "ringing"):
+        for name in ("under_id", "under_momentum", "under_centre", "last_change", "ringing", "correction_rate"):
             if getattr(self, name) is not None:
                 arrays[name] = getattr(self, name)
         return arrays
@@ -43,4 +46,5 @@ class CouplingMemory:
             values = np.asarray(arrays[name], dtype)
             return values if columns is None else values.reshape(-1, columns)
         return cls(int(arrays["known_id"]), get("under_id", np.int64), get("under_momentum", float, 6),
-                   get("under_centre", float, 3), get("last_change", float, 3), get("ringing", np.int64))
+                   get("under_centre", float, 3), get("last_change", float, 3), get("ringing", np.int64),
+                   get("correction_rate", float))

@@ -14,7 +14,9 @@ projected u, plus the change ΔP of the momentum of the fluid under it, over a c
 (``begin``: from where the last step left it). Each pass before the projection updates the guess of
 the particle's new motion, damped by the cells' own response so that light particles converge
 (``after_solve``); after the projection the step's impulse gives its velocities, drag and torque
-(``after_projection``). docs/coupling.md has the method's measurements.
+(``after_projection``). With ``drag_correction`` (``correction.py``) an extra rate κ_x acts on
+the fluid share of each particle's cells, and ``corrected_rates`` sets the next step's from the
+drag the particles felt. docs/coupling.md has the method's measurements.
 """
 from __future__ import annotations
 
@@ -23,6 +25,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from mpi4py import MPI
 
+from ..arrays import cross, sum_rows
 from ..fluid import FluidState
 from ..particles import ParticleState
 from .locate import CellLocator, Touched, alpha_per_cell, smooth_fraction
@@ -82,9 +85,10 @@ class PenaltyForcing:
     section : the case's [coupling] section
     fluid_density : ρ_f (kg/m³)
     viscosity : μ (Pa s)
+    correction : the drag correction for under-resolved particles (``correction.DragCorrection``), or None
     """
 
-    def __init__(self, mesh, section, fluid_density: float, viscosity: float):
+    def __init__(self, mesh, section, fluid_density: float, viscosity: float, correction=None):
         self.mesh, self.comm = mesh, mesh.comm
         self.locator = CellLocator(mesh, section.volume_fraction, int(section.subcell_points), smooth_reach=True)
         self.rho = float(fluid_density)
@@ -92,6 +96,7 @@ class PenaltyForcing:
         self.two_way = section.mode == "two-way"
         self.explicit = section.update == "explicit"
         self.strength = float(section.penalty_strength)
+        self.correction = correction
 
     def locate(self, state: ParticleState) -> Touched:
         """Local. This rank's touched cells and volume fractions."""
@@ -108,6 +113,9 @@ class PenaltyForcing:
         thrust. "Under" weighs each cell by a smooth fraction, not α, whose jumps as sample points
         cross the surface made light particles ring. The flow is returned as it came."""
         kappa = self.penalty_rates(touched, self.relative_speed(state, touched, fluid.u))
+        if self.correction is not None:   # the extra rate acts on the fluid share of the particle's cells
+            total = alpha_per_cell(touched, self.mesh.n_owned_cells)[touched.cell]
+            kappa = kappa + self.correction.rates(state, memory)[touched.particle] * (1.0 - np.minimum(total, 1.0))
         under_mass = self.rho * smooth_fraction(self.mesh, self.locator.h2, state, touched) \
             * self.mesh.cell_volume[touched.cell]
         internal_start, under_scale = self.fluid_under(state, touched, fluid.u, under_mass)
@@ -231,11 +239,39 @@ class PenaltyForcing:
         force, torque = hydrodynamic_force(state, external, dv, dw, impulse, dt)
         memory = replace(memory, under_id=state.id[order], under_momentum=internal_end[order],
                          under_centre=state.x[order])
+        if self.correction is not None:
+            v = np.where(state.movable[:, None], state.v + dv, state.v)
+            memory = replace(memory, correction_rate=self.corrected_rates(state, passes, fluid.u, v, force, dt, memory))
         if self.explicit:
             last_change, ringing = watch_ringing(state, np.where(state.movable[:, None], dv, 0.0), memory.last_change,
                                                  memory.ringing, self.rho, step, time)
             memory = replace(memory, last_change=last_change, ringing=ringing)
         return Exchange(fluid, force, torque, memory)
+
+    def corrected_rates(self, state: ParticleState, passes: PenaltyPasses, u: np.ndarray, v: np.ndarray,
+                        force: np.ndarray, dt: float, memory: CouplingMemory) -> np.ndarray:
+        """Collective. The drag correction's κ_x per pool of particles (n_pools,) for the next step,
+        from the correlation's force at the local voidage and slip (particle velocities ``v`` (n, 3)
+        at the step's end, flow ``u``), the drag ``force`` (n, 3) felt this step, and the force per
+        unit κ_x in the particle's cells: the fluid share (1 − α) of each, its velocity relative to
+        the particle, damped by the cell's own implicit response 1/(1 + κ dt)."""
+        touched, n_owned = passes.touched, self.mesh.n_owned_cells
+        p, c = touched.particle, touched.cell
+        alpha = alpha_per_cell(touched, n_owned)
+        rigid = passes.solved_v[p] + cross(passes.solved_omega[p], self.mesh.cell_center[c] - state.x[p])
+        solid = sum_rows(c, touched.alpha[:, None] * rigid, n_owned)
+        eps, superficial = self.correction.slip(state, u, alpha, solid, v)
+        target, direction = self.correction.target(state, eps, superficial)
+        target *= np.minimum(1.0, 1.0 / passes.under_scale)    # the share of a sphere cut by a symmetry plane
+        kappa_cell = np.bincount(c, passes.kappa, minlength=n_owned)[c]
+        along = np.einsum("ij,ij->i", u[c] - rigid, direction[p])
+        share = self.rho * self.mesh.cell_volume[c] * (1.0 - np.minimum(alpha[c], 1.0)) * along / (1 + kappa_cell * dt)
+        sensitivity = np.bincount(p, share, minlength=len(state))
+        if self.comm.size > 1:
+            self.comm.Allreduce(MPI.IN_PLACE, sensitivity, op=MPI.SUM)
+        rate = memory.correction_rate
+        rate = np.zeros(self.correction.bins.n_pools) if rate is None else rate
+        return self.correction.update(state, rate, eps, target, direction, force, sensitivity, dt)
 
     def fluid_under(self, state: ParticleState, touched: Touched, u: np.ndarray, mass: np.ndarray,
                     x: np.ndarray | None = None, extra: np.ndarray | None = None):
