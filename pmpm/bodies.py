@@ -119,8 +119,9 @@ class Body:
         if depth is not None:
             alpha[depth < -reach[near]] = 0.0
             cut = np.flatnonzero(np.abs(depth) <= reach[near])
-        points = np.matmul(samples, corners[near[cut]])          # (cut cells, samples, 3)
-        alpha[cut] = self.inside(points.reshape(-1, 3), time).reshape(len(cut), -1).mean(axis=1)
+        if len(cut):
+            points = np.matmul(samples, corners[near[cut]])          # (cut cells, samples, 3)
+            alpha[cut] = self.inside(points.reshape(-1, 3), time).reshape(len(cut), -1).mean(axis=1)
         keep = alpha > 0
         return near[keep], alpha[keep]
 

@@ -103,6 +103,21 @@ def test_covered_cells_sample_only_the_cut_cells_and_agree_with_sampling_all(sha
     assert (alpha == 1).sum() > 10 and ((alpha > 0) & (alpha < 1)).sum() > 10
 
 
+def test_covered_cells_where_the_surface_cuts_no_cell():
+    """A body that holds every cell of the mesh (its surface outside it: no cell is cut) covers each
+    wholly; one far away covers none. (With no cut cell on a rank the sampling crashed on that rank
+    alone, and the other waited for it: the paddle's 2-rank run hung.)"""
+    mesh = Mesh.from_box(MPI.COMM_SELF, (0, 0, 0), (0.1, 0.1, 0.1), (5, 5, 5))
+    samples = reference_samples("hex", 4)
+    whole = body("box", center=np.array([0.05, 0.05, 0.05]), size=np.array([1.0, 1.0, 1.0]),
+                 angular_velocity=np.array([0.0, 0.0, 1.0]), rotation_center=np.array([0.05, 0.05, 0.05]))
+    cells, alpha = whole.covered_cells(mesh, 0.1, samples)
+    np.testing.assert_array_equal(cells, np.arange(125))
+    assert (alpha == 1).all()
+    far = body("box", center=np.array([5.0, 5.0, 5.0]), size=np.array([0.1, 0.1, 0.1]))
+    assert len(far.covered_cells(mesh, 0.0, samples)[0]) == 0
+
+
 def test_a_tilted_box_is_turned_about_its_centre():
     """A 0.4 × 0.1 × 0.1 box tilted by 90° about z lies along y: its surface and its inside agree."""
     from pmpm.bodies import rotation_matrix
