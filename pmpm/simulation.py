@@ -413,6 +413,7 @@ class Simulation:
         status, stop = "completed", None
         checkpoint_time = self.state.time
         watch = FlowWatch(self.state, model.flow.boundary_cfl(run.dt) if model.flow is not None else 0.0)
+        all_ranks_here = True   # the summary is collective: written only where every rank ends alike
         try:
             with StopRequests() as stops:
                 while self.state.time < run.end_time * (1 - 1e-12):
@@ -451,11 +452,19 @@ class Simulation:
             with self.times.stage("output"):   # the last good state is written first
                 writers.write(self.state)
             raise
+        except (CaseError, Stopped):
+            raise
+        except BaseException:
+            # a bug, perhaps on this rank alone while the others wait in a step: no collective
+            # summary then (it would hang); __main__ takes every rank down
+            status, all_ranks_here = "failed: internal error", self.comm.size == 1
+            raise
         finally:
-            total = wallclock.perf_counter() - started
-            progress.update(self.state.step, self.state.time, force=True)
-            seconds = {"total": total, "setup": setup_seconds, **self.times.seconds}
-            io.write_summary(self.comm, output, reporting.summary(model, self.state, status, seconds))
+            if all_ranks_here:
+                total = wallclock.perf_counter() - started
+                progress.update(self.state.step, self.state.time, force=True)
+                seconds = {"total": total, "setup": setup_seconds, **self.times.seconds}
+                io.write_summary(self.comm, output, reporting.summary(model, self.state, status, seconds))
         if stop is not None:
             raise stop
 

@@ -170,3 +170,32 @@ def test_the_first_adaptive_step_of_a_flow_from_rest_stays_below_max_cfl(tmp_pat
     result = subprocess.run(command, capture_output=True, text=True, timeout=300, env=subprocess_env())
     assert result.returncode == 0, result.stderr
     assert "CFL" not in result.stderr, result.stderr
+
+
+BUG_ON_ONE_RANK = """
+import sys
+from mpi4py import MPI
+import pmpm.simulation as simulation
+original = simulation.move_particles
+def broken(*args, **kwargs):
+    if MPI.COMM_WORLD.rank == 1 and args[1].step == 3:
+        raise ValueError("a bug on rank 1")
+    return original(*args, **kwargs)
+simulation.move_particles = broken
+from pmpm.__main__ import main
+sys.exit(main(sys.argv[1:]))
+"""
+
+
+def test_a_bug_on_one_rank_takes_every_rank_down_without_hanging(tmp_path):
+    """An exception that is not a user's mistake, raised on rank 1 alone in the middle of a run: the
+    run did not hang (the summary, which is collective, used to be written on that rank while the
+    other waited inside the step), every rank exits, non-zero, and the traceback names the bug."""
+    folder = channel(tmp_path, end_time=0.2, dt=0.004)
+    with open(folder / "case.toml", "a") as case:
+        case.write("\n[[particles.add]]\nposition = [0.5, 0.05, 0.05]\nradius = 0.02\ndensity = 2000.0\n")
+    (tmp_path / "broken.py").write_text(BUG_ON_ONE_RANK)
+    command = mpirun_command(2) + [str(tmp_path / "broken.py"), str(folder), "--quiet"]
+    result = subprocess.run(command, capture_output=True, text=True, timeout=120, env=subprocess_env())
+    assert result.returncode != 0
+    assert "a bug on rank 1" in result.stderr
