@@ -33,3 +33,9 @@ class StopRequests:
     def agreed(self, comm) -> int:
         """Collective. The first signal received on any rank (the largest number if several), or 0."""
         return comm.allreduce(self.received, op=MPI.MAX) if comm.size > 1 else self.received
+
+
+def stop_message(state, signal_number: int, output) -> str:
+    """What a run stopped by a signal says: the step, the time, where its checkpoint is."""
+    return (f"stopped by {signal.Signals(signal_number).name} after step {state.step}, t = {state.time:.6g} s; "
+            f"the state is in {output / 'checkpoint.h5'} (continue with --restart)")

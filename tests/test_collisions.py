@@ -517,7 +517,7 @@ def test_closing_pairs_matches_the_direct_filter():
 
 # -- set-up helpers ----------------------------------------------------------------------------
 def fake_case(**sections):
-    base = dict(path=Path("/tmp/case.toml"), boundaries={}, collisions=None, deposition=None, coupling=None,
+    base = dict(path=Path("case.toml"), boundaries={}, collisions=None, deposition=None, coupling=None,
                 run=Section({"dt": 1e-3, "gravity": (0.0, 0.0, -G)}))
     base.update(sections)
     return SimpleNamespace(**base)

@@ -522,7 +522,7 @@ def test_a_displacing_step_is_warned_of_as_such(tmp_path, capsys):
     """The outflow that carries an injected particle's volume away lasts one step, and a smaller
     dt does not lower its CFL number (volume / (area × h)): a CFL number above max_cfl in such a
     step is warned of as that, not with "reduce [run] dt"."""
-    from pmpm.simulation import FlowWatch, watch_flow
+    from pmpm.timestep import FlowWatch, watch_flow
     path = tmp_path / "case.toml"
     path.write_text(INJECTING.replace("[run]\n", "[run]\nmax_cfl = 0.05\n"))   # the step makes ≈ 0.2
     case = load_case(path, [])
