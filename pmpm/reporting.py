@@ -3,6 +3,7 @@ way, and summary.json at the end (wall seconds per stage, conservation diagnosti
 from __future__ import annotations
 
 import math
+import resource
 import time as wallclock
 from contextlib import contextmanager
 
@@ -154,8 +155,16 @@ def summary(model, state, status: str, seconds: dict) -> dict:
         **({"particles_per_rank": largest_per_rank(model.comm, state.ranks_seen)} if owned else {}),
         "steps": state.step, "simulated_time": state.time, "models": model.case.models(),
         "wall_seconds": seconds,
+        "peak_memory_mb": peak_memory_mb(model.comm),
         "diagnostics": diagnostics(model, state),
     }
+
+
+def peak_memory_mb(comm) -> dict:
+    """Collective. The largest resident memory (MB) a rank reached so far, and the sum over ranks
+    (``ru_maxrss``: the process's peak, Python, PETSc and MPI included)."""
+    peaks = comm.allgather(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0)   # kB on Linux
+    return {"largest_rank": round(max(peaks), 1), "all_ranks": round(sum(peaks), 1)}
 
 
 def largest_per_rank(comm, seen: dict) -> dict:

@@ -54,7 +54,7 @@ def column(comm, folder: Path, width: float, height: float, cells: tuple[int, in
     text = COLUMN.format(dt=dt, gravity=list(gravity), width=width, height=height, n=cells[0], m=cells[1],
                          rho_f=density, mu=viscosity, speed=speed, sides=SIDES, rule=rule, passes=passes,
                          coupling=extra, collisions=collisions)
-    path = folder / f"column_{comm.size}_{comm.rank}.toml"
+    path = folder / f"column_{comm.size}_{MPI.COMM_WORLD.rank}.toml"   # ranks on COMM_SELF write their own
     path.write_text(text)
     case = load_case(path, [])
     mesh = Mesh.from_box(comm, case.box.lower, case.box.upper, case.box.cells, case.mesh.cell_type)

@@ -98,6 +98,8 @@ def test_check_set_and_results_kept(tmp_path):
     assert first.returncode == 0, first.stderr
     summary = json.loads((folder / "output" / "summary.json").read_text())
     assert summary["ranks"] == 2 and summary["steps"] == 4
+    peak = summary["peak_memory_mb"]   # two Python processes with PETSc: tens of MB each at least
+    assert 20 < peak["largest_rank"] < peak["all_ranks"] <= 2 * peak["largest_rank"]
     before = (folder / "output" / "particles.csv").read_text()
     second = run_pmpm([folder, "--quiet", "--set", "run.end_time=0.01"])
     assert second.returncode == 0, second.stderr

@@ -6,7 +6,7 @@ import pytest
 from mpi4py import MPI
 
 from pmpm.case import load_case
-from pmpm.coupling import CouplingMemory, External, shared_alpha, smooth_fraction
+from pmpm.coupling import CouplingMemory, External, shared_alpha, shared_smooth
 from pmpm.errors import NumericalError
 from pmpm.fluid import FluidState
 from pmpm.mesh import Mesh
@@ -49,7 +49,8 @@ DEFAULTS = dict(end_time=0.1, dt=0.01, gravity="[0.0, 0.0, 0.0]", L=0.08, H=0.08
 
 
 def simulation(comm, tmp_path, **values):
-    path = tmp_path / f"case_{comm.size}_{comm.rank}.toml"
+    # named by the world rank: ranks that each run on MPI.COMM_SELF in a shared folder write their own
+    path = tmp_path / f"case_{comm.size}_{MPI.COMM_WORLD.rank}.toml"
     path.write_text(BOX.format(**{**DEFAULTS, **values}))
     case = load_case(path, [])
     mesh = Mesh.from_box(comm, case.box.lower, case.box.upper, case.box.cells, case.mesh.cell_type)
@@ -413,8 +414,8 @@ def test_momentum_of_fluid_and_particle_is_conserved(tmp_path, request, forcing)
         mass = flow.rho * shared_alpha(touched, mesh.n_owned_cells) * mesh.cell_volume[c]
         if forcing == "patch":
             return (mass[:, None] * (state.v[p] + np.cross(state.omega[p], mesh.cell_center[c] - x[p]))).sum(axis=0)
-        under = flow.rho * smooth_fraction(mesh, coupling.locator.h2, state, touched, x) * mesh.cell_volume[c]
-        return coupling.fluid_under(state, touched, sim.fluid_state.u, under, x)[0][0, :3]
+        under = flow.rho * shared_smooth(touched, mesh.n_owned_cells) * mesh.cell_volume[c]
+        return coupling.fluid_under(state, touched, mesh.cell_center[c] - x[p], sim.fluid_state.u, under)[0][0, :3]
 
     start = state.mass[0] * state.v[0]
     scale = np.linalg.norm(start)

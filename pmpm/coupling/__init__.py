@@ -31,14 +31,14 @@ from __future__ import annotations
 import numpy as np
 
 from .correction import DragCorrection
-from .locate import CellLocator, Touched, alpha_per_cell, shared_alpha, smooth_fraction, volume_fraction
+from .locate import CellLocator, Touched, alpha_per_cell, shared_alpha, shared_smooth, volume_fraction
 from .memory import CouplingMemory
 from .patch import PatchForcing
 from .penalty import PenaltyForcing
 from .update import Exchange, External
 
 __all__ = ["CellLocator", "CouplingMemory", "DragCorrection", "Exchange", "External", "PatchForcing", "PenaltyForcing",
-           "Touched", "alpha_per_cell", "build_forcing", "shared_alpha", "smooth_fraction", "volume_fraction"]
+           "Touched", "alpha_per_cell", "build_forcing", "shared_alpha", "shared_smooth", "volume_fraction"]
 
 
 def build_forcing(mesh, section, fluid, diameter: float = 0.0) -> PenaltyForcing | PatchForcing:

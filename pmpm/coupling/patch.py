@@ -21,7 +21,7 @@ from ..fluid import FluidState
 from ..particles import ParticleState
 from .locate import CellLocator, Touched, shared_alpha
 from .memory import CouplingMemory
-from .sums import particle_sums
+from .sums import fluid_sums
 from .update import Exchange, External, blended_change, hydrodynamic_force, watch_ringing
 
 
@@ -91,9 +91,8 @@ class PatchForcing:
         the step's; the particle update from all of it; in two-way mode u patched with the updated
         motion (a new array). Returns (u, passes, dv, dw)."""
         p, c = passes.touched.particle, passes.touched.cell
-        rigid = passes.guess_v[p] + np.cross(passes.guess_omega[p], passes.r)
-        covered, moment, (deviation,) = particle_sums(self.comm, len(state), p, passes.r, passes.mass,
-                                                      passes.mass[:, None] * (u[c] - rigid))
+        covered, moment, _, deviation = fluid_sums(self.comm, len(state), p, c, passes.r, u, passes.mass, passes.mass,
+                                                    passes.guess_v, passes.guess_omega)
         pending = passes.pending + deviation
         dv, dw = blended_change(state, external, pending, dt, covered, moment, self.explicit)
         free = state.movable

@@ -28,9 +28,9 @@ from mpi4py import MPI
 from ..arrays import cross, sum_rows
 from ..fluid import FluidState
 from ..particles import ParticleState
-from .locate import CellLocator, Touched, alpha_per_cell, smooth_fraction
+from .locate import CellLocator, Touched, alpha_per_cell, shared_smooth
 from .memory import CouplingMemory
-from .sums import particle_sums
+from .sums import cell_targets, fluid_sums, largest_slip
 from .update import Exchange, External, damped_change, damped_guess, hydrodynamic_force, watch_ringing
 
 PENALTY_CAP = 1e3   # κ h²/ν of a cell wholly inside a particle: rigid to ~1e-3 of its neighbours' pull;
@@ -51,29 +51,33 @@ class PenaltyPasses:
     """One step of the penalty forcing, handed from pass to pass.
 
     touched : the step's (particle, cell, α) pairs on this rank
-    kappa : (m,) κ of each pair (1/s); the particles stay put during the flow step
+    offset : (m, 3) r from the particle's centre to the cell centre; the particles stay put during
+        the flow step
+    kappa : (m,) κ of each pair (1/s)
     under_mass : (m,) ρ f V, the fluid mass under the particle in each pair (f the smooth fraction)
     under_scale : (n,) ρ V_sphere / Σ under_mass: "under" scaled to the sphere's own volume
     internal_start : (n, 6) the fluid momentum under each particle at the step's start, with its moment
+    exchange_weight : (m,) ρ V × the rate of the exchange per pair (J = Σ weight (u − U))
+    response, response_spin : (n,) the cells' response M_c to the particle's speed and spin
     guess_v, guess_omega : (n, 3) the motion the next solve drives the fluid towards
     solved_v, solved_omega : (n, 3) the motion the last solve drove it towards
-    exchanged : (n, 6) J of the last solve; response, response_spin : (n,) the cells' response M_c;
-    exchange_weight : (m,) ρ V × the rate of the exchange per pair (J = Σ weight (u − U))
+    exchanged : (n, 6) J of the last solve
     """
 
     touched: Touched
+    offset: np.ndarray
     kappa: np.ndarray
     under_mass: np.ndarray
     under_scale: np.ndarray
     internal_start: np.ndarray
+    exchange_weight: np.ndarray
+    response: np.ndarray
+    response_spin: np.ndarray
     guess_v: np.ndarray
     guess_omega: np.ndarray
     solved_v: np.ndarray | None = None
     solved_omega: np.ndarray | None = None
     exchanged: np.ndarray | None = None
-    response: np.ndarray | None = None
-    response_spin: np.ndarray | None = None
-    exchange_weight: np.ndarray | None = None
 
 
 class PenaltyForcing:
@@ -111,14 +115,27 @@ class PenaltyForcing:
         start is the fluid under the particle *as the last step left it* (``memory``). Over a fixed
         set of cells instead, the fluid a moving sphere sweeps up ahead and leaves behind gave it a
         thrust. "Under" weighs each cell by a smooth fraction, not α, whose jumps as sample points
-        cross the surface made light particles ring. The flow is returned as it came."""
-        kappa = self.penalty_rates(touched, self.relative_speed(state, touched, fluid.u))
+        cross the surface made light particles ring. The flow is returned as it came.
+
+        The exchange's weights and the cells' response M_c = Σ ρ V κ dt / (1 + κ dt) (how much J
+        falls when the particle speeds up: an upper bound, since diffusion to the neighbours and ΔP
+        lower it, so that the passes converge monotonically) hold for the whole step."""
+        n_owned = self.mesh.n_owned_cells
+        p, c = touched.particle, touched.cell
+        offset = self.mesh.cell_center[c] - state.x[p]
+        speed = largest_slip(self.comm, len(state), p, c, offset, fluid.u, state.v, state.omega)
+        kappa = self.penalty_rates(touched, speed)
         if self.correction is not None:   # the extra rate acts on the fluid share of the particle's cells
-            total = alpha_per_cell(touched, self.mesh.n_owned_cells)[touched.cell]
-            kappa = kappa + self.correction.rates(state, memory)[touched.particle] * (1.0 - np.minimum(total, 1.0))
-        under_mass = self.rho * smooth_fraction(self.mesh, self.locator.h2, state, touched) \
-            * self.mesh.cell_volume[touched.cell]
-        internal_start, under_scale = self.fluid_under(state, touched, fluid.u, under_mass)
+            total = alpha_per_cell(touched, n_owned)[c]
+            kappa = kappa + self.correction.rates(state, memory)[p] * (1.0 - np.minimum(total, 1.0))
+        under_mass = self.rho * shared_smooth(touched, n_owned) * self.mesh.cell_volume[c]
+        internal_start, under_scale = self.fluid_under(state, touched, offset, fluid.u, under_mass)[:2]
+        volume = self.rho * self.mesh.cell_volume[c]
+        kappa_cell = np.bincount(c, kappa, minlength=n_owned)[c]
+        # one-way: the particle takes what a local implicit penalty would exchange
+        rate = kappa * dt if self.two_way else kappa * dt / (1.0 + kappa_cell * dt)
+        response, response_spin = fluid_sums(self.comm, len(state), p, c, offset, fluid.u,
+                                             volume * kappa * dt / (1.0 + kappa_cell * dt))[:2]
         if memory.under_id is not None:   # particles new to the flow keep the fluid under them now
             known_ids, known, centre = memory.under_id, memory.under_momentum, memory.under_centre
             position = np.minimum(np.searchsorted(known_ids, state.id), max(len(known_ids) - 1, 0))
@@ -127,7 +144,8 @@ class PenaltyForcing:
             # its moment about where the centre is now: L' = L − (x' − x) × P
             start[:, 3:] -= np.cross(state.x[same] - centre[position[same]], start[:, :3])
             internal_start[same] = start
-        return PenaltyPasses(touched, kappa, under_mass, under_scale, internal_start, state.v, state.omega), fluid
+        return PenaltyPasses(touched, offset, kappa, under_mass, under_scale, internal_start, volume * rate, response,
+                             response_spin, state.v, state.omega), fluid
 
     def penalty_rates(self, touched: Touched, speed: np.ndarray) -> np.ndarray:
         """κ (1/s) of each (particle, cell) pair, from the cell's total volume fraction α, shared among
@@ -139,7 +157,7 @@ class PenaltyForcing:
         ``penalty_strength``, fitted on the Stokes drag): it sets where the particle's surface lies,
         without dt. The second is the blockage: a cell the particle fills must stop the flow that the
         pressure drives through it, ∇p/ρ ~ |u − U|²/d, faster than convection brings it; ``speed``
-        (n,) |u − U|_max is each particle's (``relative_speed``). A cell wholly inside gets 167 times
+        (n,) |u − U|_max is each particle's over its cells at the step's start. A cell wholly inside gets 167 times
         either exchange rate with its neighbours (6 ν/h² by diffusion, |u − U|/h by convection); α⁸
         leaves the friction of the cut cells viscous, so the surface stays where the Stokes fit put it."""
         total = alpha_per_cell(touched, self.mesh.n_owned_cells)[touched.cell]
@@ -147,33 +165,14 @@ class PenaltyForcing:
                          self.strength)
         return rate * touched.alpha / np.maximum(total, 1e-300)
 
-    def relative_speed(self, state: ParticleState, touched: Touched, u: np.ndarray) -> np.ndarray:
-        """Collective. (n,) the largest |u − U| (m/s) over each particle's touched cells at the step's
-        start, U its rigid motion: the speed at which the flow meets it, for the blockage rate."""
-        p, c = touched.particle, touched.cell
-        rigid = state.v[p] + np.cross(state.omega[p], self.mesh.cell_center[c] - state.x[p])
-        speed = np.zeros(len(state))
-        np.maximum.at(speed, p, np.linalg.norm(u[c] - rigid, axis=1))
-        if self.comm.size > 1:
-            self.comm.Allreduce(MPI.IN_PLACE, speed, op=MPI.MAX)
-        return speed
-
     def implicit_terms(self, state: ParticleState, passes: PenaltyPasses):
         """Local. (V κ (n_owned,), V κ U (n_owned, 3)) per owned cell for the next momentum solve, U
         the rigid motion of the current guess; (None, None) in one-way mode: the fluid is not forced."""
         if not self.two_way:
             return None, None
-        n_owned = self.mesh.n_owned_cells
-        diagonal, target = np.zeros(n_owned), np.zeros((n_owned, 3))
-        p, c = passes.touched.particle, passes.touched.cell
-        if len(c) == 0:
-            return diagonal, target
-        weight = self.mesh.cell_volume[c] * passes.kappa
-        rigid = passes.guess_v[p] + np.cross(passes.guess_omega[p], self.mesh.cell_center[c] - state.x[p])
-        diagonal += np.bincount(c, weight, minlength=n_owned)
-        for d in range(3):
-            target[:, d] = np.bincount(c, weight * rigid[:, d], minlength=n_owned)
-        return diagonal, target
+        touched = passes.touched
+        return cell_targets(self.mesh.n_owned_cells, touched.particle, touched.cell, passes.offset,
+                            self.mesh.cell_volume[touched.cell] * passes.kappa, passes.guess_v, passes.guess_omega)
 
     def after_solve(self, state: ParticleState, passes: PenaltyPasses, u_star: np.ndarray, external: External,
                     dt: float) -> tuple[np.ndarray, None, PenaltyPasses]:
@@ -186,27 +185,13 @@ class PenaltyForcing:
         (``update = "explicit"``: no new guess; every pass drives the fluid towards the step's first
         motion, as the paper's single patch does.) ``u_star`` is returned unchanged, with no source
         for the next solve: the penalty is already in it (two-way) or the fluid is not forced (one-way)."""
-        n = len(state)
-        p, c = passes.touched.particle, passes.touched.cell
-        r = self.mesh.cell_center[c] - state.x[p]
-        kappa = passes.kappa
-        rigid = passes.guess_v[p] + np.cross(passes.guess_omega[p], r)
-        volume = self.rho * self.mesh.cell_volume[c]
-        # one-way: the particle takes what a local implicit penalty would exchange
-        kappa_cell = np.bincount(c, kappa, minlength=self.mesh.n_owned_cells)[c]
-        rate = kappa * dt if self.two_way else kappa * dt / (1.0 + kappa_cell * dt)
-        # how much J falls when the particle speeds up, from each cell's own response: an upper
-        # bound (diffusion to the neighbours, and ΔP, lower it), so the passes converge monotonically
-        response = volume * kappa * dt / (1.0 + kappa_cell * dt)
-        weight = volume * rate
-        response, response_spin, (exchanged, internal) = particle_sums(
-            self.comm, n, p, r, response, weight[:, None] * (u_star[c] - rigid), passes.under_mass[:, None] * u_star[c])
-        passes = replace(passes, solved_v=passes.guess_v, solved_omega=passes.guess_omega, exchanged=exchanged,
-                         response=response, response_spin=response_spin, exchange_weight=weight)
+        internal, _, exchanged = self.fluid_under(state, passes.touched, passes.offset, u_star, passes.under_mass,
+                                                  passes.exchange_weight, passes.guess_v, passes.guess_omega)
+        passes = replace(passes, solved_v=passes.guess_v, solved_omega=passes.guess_omega, exchanged=exchanged)
         if self.explicit:
             return u_star, None, passes
-        impulse = exchanged + passes.under_scale[:, None] * internal - passes.internal_start   # J + ΔP
-        v, omega = damped_guess(state, external, impulse, dt, response, response_spin,
+        impulse = exchanged + internal - passes.internal_start   # J + ΔP
+        v, omega = damped_guess(state, external, impulse, dt, passes.response, passes.response_spin,
                                 passes.solved_v, passes.solved_omega)
         return u_star, None, replace(passes, guess_v=v, guess_omega=omega)
 
@@ -221,12 +206,11 @@ class PenaltyForcing:
         n = len(state)
         exchanged = passes.exchanged
         if self.two_way:
-            p, c = passes.touched.particle, passes.touched.cell
-            rigid = passes.solved_v[p] + np.cross(passes.solved_omega[p], self.mesh.cell_center[c] - state.x[p])
-            internal_end, _, exchanged = self.fluid_under(state, passes.touched, fluid.u, passes.under_mass,
-                                                          extra=passes.exchange_weight[:, None] * (fluid.u[c] - rigid))
+            internal_end, _, exchanged = self.fluid_under(state, passes.touched, passes.offset, fluid.u,
+                                                          passes.under_mass, passes.exchange_weight, passes.solved_v,
+                                                          passes.solved_omega)
         else:
-            internal_end, _ = self.fluid_under(state, passes.touched, fluid.u, passes.under_mass)
+            internal_end = self.fluid_under(state, passes.touched, passes.offset, fluid.u, passes.under_mass)[0]
         order = np.argsort(state.id)
         impulse = exchanged + internal_end - passes.internal_start
         m, inertia = state.mass, state.inertia
@@ -258,7 +242,7 @@ class PenaltyForcing:
         touched, n_owned = passes.touched, self.mesh.n_owned_cells
         p, c = touched.particle, touched.cell
         alpha = alpha_per_cell(touched, n_owned)
-        rigid = passes.solved_v[p] + cross(passes.solved_omega[p], self.mesh.cell_center[c] - state.x[p])
+        rigid = passes.solved_v[p] + cross(passes.solved_omega[p], passes.offset)
         solid = sum_rows(c, touched.alpha[:, None] * rigid, n_owned)
         eps, superficial = self.correction.slip(state, u, alpha, solid, v)
         target, direction = self.correction.target(state, eps, superficial)
@@ -273,19 +257,16 @@ class PenaltyForcing:
         rate = np.zeros(self.correction.bins.n_pools) if rate is None else rate
         return self.correction.update(state, rate, eps, target, direction, force, sensitivity, dt)
 
-    def fluid_under(self, state: ParticleState, touched: Touched, u: np.ndarray, mass: np.ndarray,
-                    x: np.ndarray | None = None, extra: np.ndarray | None = None):
+    def fluid_under(self, state: ParticleState, touched: Touched, offset: np.ndarray, u: np.ndarray,
+                    mass: np.ndarray, weight: np.ndarray | None = None, v: np.ndarray | None = None,
+                    omega: np.ndarray | None = None):
         """Collective. The momentum of the fluid under each particle, (n, 6): Σ m u over its pairs
         (``mass`` m = ρ f V, f the smooth fraction) and its moment about the centre, scaled to the
         sphere's own volume (Σ f V wobbles by ~1e-3 as the sphere moves, which in a uniform stream
-        gave a particle an impulse out of nothing); and that scale (n,). ``x``: the centres, if not
-        where ``state`` has them. ``extra``: a per-pair momentum (m, 3) summed, with its moment, in
-        the same reduction and returned third."""
-        p, c = touched.particle, touched.cell
-        x = state.x if x is None else x
-        covered, _, sums = particle_sums(self.comm, len(state), p, self.mesh.cell_center[c] - x[p], mass,
-                                         mass[:, None] * u[c], *(() if extra is None else (extra,)))
+        gave a particle an impulse out of nothing); that scale (n,); and, with a ``weight`` per pair
+        and the particles' motion ``v``, ``omega``, the exchange Σ weight (u − U) with its moment
+        (n, 6) (else None). ``offset`` (m, 3): from the particle's centre to each pair's cell centre."""
+        covered, _, carried, exchanged = fluid_sums(self.comm, len(state), touched.particle, touched.cell, offset, u,
+                                                    mass, weight, v, omega)
         scale = self.rho * state.volume / np.maximum(covered, np.finfo(float).tiny)
-        if extra is None:
-            return scale[:, None] * sums[0], scale
-        return scale[:, None] * sums[0], scale, sums[1]
+        return scale[:, None] * carried, scale, exchanged
