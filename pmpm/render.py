@@ -309,7 +309,7 @@ def render_frame(frame: Frame, run: RunOutput, view: View, plane_at: float, poly
     if options.vectors:
         title += "\n" + draw_vectors(axes, polygons, frame.slice_velocity, view)
     if frame.slice_solid is not None and frame.slice_solid.any():
-        title += "; grey: cells at least half solid"
+        title += "\ngrey: cells at least half solid"
     axes.set_title(title, fontsize="medium")
 
     if field is not None:

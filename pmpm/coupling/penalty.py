@@ -117,9 +117,10 @@ class PenaltyForcing:
         thrust. "Under" weighs each cell by a smooth fraction, not α, whose jumps as sample points
         cross the surface made light particles ring. The flow is returned as it came.
 
-        The exchange's weights and the cells' response M_c = Σ ρ V κ dt / (1 + κ dt) (how much J
-        falls when the particle speeds up: an upper bound, since diffusion to the neighbours and ΔP
-        lower it, so that the passes converge monotonically) hold for the whole step."""
+        The exchange's weights and the cells' response M_c = Σ ρ V K (1 + K_o)/(1 + K + K_o), K = κ dt
+        the particle's and K_o the other particles' in the cell (how much J falls when the particle
+        speeds up: an upper bound, since diffusion to the neighbours and ΔP lower it, so that the
+        passes converge monotonically) hold for the whole step."""
         n_owned = self.mesh.n_owned_cells
         p, c = touched.particle, touched.cell
         offset = self.mesh.cell_center[c] - state.x[p]
@@ -134,8 +135,13 @@ class PenaltyForcing:
         kappa_cell = np.bincount(c, kappa, minlength=n_owned)[c]
         # one-way: the particle takes what a local implicit penalty would exchange
         rate = kappa * dt if self.two_way else kappa * dt / (1.0 + kappa_cell * dt)
+        # two-way: a cell the particle shares is held by the others' penalties too, K_o = (κ_cell − κ) dt,
+        # which resist its own motion there: ∂J/∂U = ρ V K (1 + K_o)/(1 + K + K_o). Without K_o, two
+        # beads touching across cells they both fill took their relative motion explicitly and rang,
+        # growing ×3 a step, once the blockage rate's K_o reached a few (dt = 1 ms in a settling bed)
+        others = (kappa_cell - kappa) * dt if self.two_way else 0.0
         response, response_spin = fluid_sums(self.comm, len(state), p, c, offset, fluid.u,
-                                             volume * kappa * dt / (1.0 + kappa_cell * dt))[:2]
+                                             volume * kappa * dt * (1.0 + others) / (1.0 + kappa_cell * dt))[:2]
         if memory.under_id is not None:   # particles new to the flow keep the fluid under them now
             known_ids, known, centre = memory.under_id, memory.under_momentum, memory.under_centre
             position = np.minimum(np.searchsorted(known_ids, state.id), max(len(known_ids) - 1, 0))
@@ -178,7 +184,7 @@ class PenaltyForcing:
                     dt: float) -> tuple[np.ndarray, None, PenaltyPasses]:
         """Collective. After a momentum solve: J of this solve and the next guess,
 
-            (m + M_c) V_next = m Vⁿ + dt F_ext + J + ΔP + M_c V_guess,   M_c = Σ ρ V κ dt / (1 + κ dt),
+            (m + M_c) V_next = m Vⁿ + dt F_ext + J + ΔP + M_c V_guess,   M_c the cells' response (``begin``),
 
         damped by the cells' own response to the particle's speed, an upper bound of the true one,
         so that the passes converge without overshoot; at convergence m ΔV = dt F_ext + J + ΔP.
