@@ -20,7 +20,7 @@ os.environ.setdefault("H5PY_ALWAYS_USE_MPI", "1")  # Debian's h5py loads its MPI
 import h5py  # noqa: E402
 
 from .errors import CaseError  # noqa: E402
-from .mesh import VTK_ORDER  # noqa: E402
+from .serial_mesh import VTK_ORDER  # noqa: E402
 from .ownership import gather  # noqa: E402
 from .parallel import agree  # noqa: E402
 

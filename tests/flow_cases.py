@@ -18,7 +18,8 @@ from mpi4py import MPI
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from pmpm.case import SCHEMA, Section, check_table  # noqa: E402
+from pmpm.case import Section, check_table  # noqa: E402
+from pmpm.schema import SCHEMA  # noqa: E402
 from pmpm.fluid import FlowSolver  # noqa: E402
 from pmpm.mesh import Mesh  # noqa: E402
 

@@ -15,7 +15,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from pmpm.__main__ import main
-from pmpm.case import ARRAY_TABLES, SCHEMA
+from pmpm.schema import ARRAY_TABLES, SCHEMA
 from test_cli import run_pmpm
 
 # small on purpose: any mutation of it that stays valid builds in well under a second; within the

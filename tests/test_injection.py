@@ -4,7 +4,8 @@ import numpy as np
 import pytest
 from mpi4py import MPI
 
-from pmpm.case import SCHEMA, Section, check_table, load_case
+from pmpm.case import Section, check_table, load_case
+from pmpm.schema import SCHEMA
 from pmpm.errors import CaseError
 from pmpm.injection import Injector, read_particle_file
 from pmpm.simulation import Simulation, build_mesh

@@ -6,7 +6,8 @@ import pytest
 from mpi4py import MPI
 
 from pmpm.errors import CaseError
-from pmpm.mesh import VTK_ORDER, Mesh, box_tetrahedra
+from pmpm.mesh import Mesh
+from pmpm.serial_mesh import VTK_ORDER, box_tetrahedra
 
 LOWER, UPPER, CELLS = np.array([0.0, 0.0, 0.0]), np.array([1.0, 2.0, 3.0]), (4, 3, 5)
 SHEAR = 0.3  # the gmsh test mesh is the box sheared by x += SHEAR z: same volume, planar faces
