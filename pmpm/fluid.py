@@ -6,8 +6,8 @@ time loop calls in turn (``pmpm.simulation``; particles add implicit terms to st
 1. ``predictor``: the explicit right-hand side V/dt uⁿ − C(uⁿ) − V ∇pⁿ/ρ, the convection C from
    the face flux Fⁿ and an upwind, central or linear-upwind face value;
 2. ``solve_momentum``: (V/dt − ν L + D) u* = right-hand side, the diffusion ν L implicit (one KSP
-   solve per component, matrices assembled once per dt), D = V κ an extra diagonal (the particles'
-   implicit penalty κ);
+   solve per component, matrices assembled once, at the first step's dt; another dt shifts their
+   diagonal), D = V κ an extra diagonal (the particles' implicit penalty κ);
 3. ``project``: face flux with a Rhie–Chow-type pressure term, which keeps the pressure free of
    checkerboarding, F* = (u* + d ∇pⁿ)‾·S − d̄ (a_f (pⁿ_N − pⁿ_P) + k_f·∇̄pⁿ) with d = dt/ρ, or
    dt/ρ / (1 + κ dt) in a penalized cell (the predictor's response to a pressure gradient there);
@@ -93,7 +93,8 @@ class FlowSolver:
         dirichlet = np.zeros(len(coefficient), bool)
         dirichlet[self.n_interior:] = self.kind == OUTLET
         self.pressure = PressureSolver(mesh, coefficient, dirichlet, rtol=fluid.pressure_rtol)
-        self._momentum = {}          # dt → its momentum KSPs, the latest used last
+        self._momentum = []          # the momentum KSPs, assembled at the first step
+        self._momentum_dt = None     # the dt they were assembled for
         self._atol_dt = None
 
     # -- set-up -------------------------------------------------------------------------------------
@@ -167,30 +168,28 @@ class FlowSolver:
         return FluidState(np.zeros((self.n_local, 3)), np.zeros(self.n_local), flux)
 
     def _momentum_solvers(self, dt: float) -> list:
-        """The implicit-diffusion KSPs (V/dt − ν L) of the three components for this dt, with the
-        pressure's atol for it. The solvers of the two latest dts are kept: an adaptive step goes to
-        a shorter one to land on an output time and back."""
-        found = [d for d in self._momentum if abs(d - dt) <= 1e-12 * dt]
-        if found:
-            self._momentum[found[0]] = self._momentum.pop(found[0])     # the latest used is last
-        else:
-            if len(self._momentum) == 2:
-                oldest = next(iter(self._momentum))
-                for solver in {id(s): s for s in self._momentum.pop(oldest)}.values():
-                    solver.destroy()
-            self._momentum[float(dt)] = self._assemble_momentum(dt)
+        """The implicit-diffusion KSPs (V/dt₀ − ν L) of the three components, assembled once, at the
+        first step's dt₀ (another dt shifts their diagonal: ``solve_momentum``); their atol and the
+        pressure's set for this dt."""
+        if not self._momentum:
+            self._momentum_dt = float(dt)
+            self._momentum = self._assemble_momentum(dt)
         if self._atol_dt != dt:
             # a flux imbalance of 1e-15 m/s over each cell's faces: at a steady state the pressure's
             # right-hand side is round-off, and CG would break down on that noise
             area = self.volume[:self.n_owned] ** (2 / 3)
             self.pressure.set_atol(1e-15 * self.rho / dt * float(np.sqrt(self.comm.allreduce(np.sum(area ** 2)))))
+            # a velocity error of 1e-15 m/s per cell, so that fluid at rest converges at once
+            atol = 1e-15 * float(np.sqrt(self.comm.allreduce(np.sum((self.volume[:self.n_owned] / dt) ** 2))))
+            for solver in {id(s): s for s in self._momentum}.values():
+                solver.set_atol(atol)
             self._atol_dt = dt
-        return self.momentum
+        return self._momentum
 
     @property
     def momentum(self) -> list:
-        """The momentum KSPs of the latest dt (one per velocity component, possibly one shared)."""
-        return list(self._momentum.values())[-1] if self._momentum else []
+        """The momentum KSPs (one per velocity component, possibly one shared)."""
+        return self._momentum
 
     def _assemble_momentum(self, dt: float) -> list:
         nu = self.nu
@@ -207,9 +206,7 @@ class FlowSolver:
             diagonal = self.volume / dt + np.bincount(self.B, boundary, minlength=self.n_local)
             matrix = assemble_cell_matrix(self.mesh, coefficient, diagonal)
             # Jacobi: the matrix is diagonally dominant, and the result does not depend on the partition
-            # atol: a velocity error of 1e-15 m/s per cell, so that fluid at rest converges at once
-            atol = 1e-15 * float(np.sqrt(self.comm.allreduce(np.sum((self.volume[:self.n_owned] / dt) ** 2))))
-            solvers.append(CellKSP(self.mesh, matrix, "momentum_", "cg", "jacobi", 1e-8, "momentum", atol=atol))
+            solvers.append(CellKSP(self.mesh, matrix, "momentum_", "cg", "jacobi", 1e-8, "momentum"))
         return solvers
 
     # -- discrete operators ------------------------------------------------------------------------
@@ -276,7 +273,7 @@ class FlowSolver:
         V/dt uⁿ − C(uⁿ) − V ∇pⁿ/ρ, the boundary diffusion terms and the non-orthogonal correction."""
         rho, nu, V = self.rho, self.nu, self.volume
         u, p, flux = state.u, state.p, state.flux
-        self._momentum_solvers(dt)   # (re)assembled before the step's temporaries exist
+        self._momentum_solvers(dt)   # assembled (the first step) before the step's temporaries exist
         grad_p = self.gradient(p, self.boundary_pressure(p))
         u_b = self.boundary_velocity(u)
         grad_u = self.gradient(u, u_b) if (self.scheme == "linear_upwind" or not self.orthogonal) else None
@@ -305,8 +302,12 @@ class FlowSolver:
         penalty V κ (``pmpm.coupling``), replaces any earlier one; None solves without. Returns a new
         (n_local, 3) array: owned rows solved, ghost rows those of ``guess`` (``project`` refreshes them)."""
         solvers = self._momentum_solvers(dt)
+        # the matrices were assembled for dt₀: V/dt on the diagonal is V/dt₀ + V (1/dt − 1/dt₀)
+        shift = None if dt == self._momentum_dt else self.volume[:self.n_owned] * (1.0 / dt - 1.0 / self._momentum_dt)
+        if extra_diagonal is not None:
+            shift = extra_diagonal[:self.n_owned] if shift is None else shift + extra_diagonal[:self.n_owned]
         for solver in {id(s): s for s in solvers}.values():   # the components may share one matrix
-            solver.set_extra_diagonal(extra_diagonal)
+            solver.set_extra_diagonal(shift)
         u_star = guess.copy()
         for k, solver in enumerate(solvers):
             column = np.ascontiguousarray(u_star[:, k])
@@ -454,8 +455,7 @@ class FlowSolver:
 
     def destroy(self):
         self.pressure.destroy()
-        for solvers in self._momentum.values():
-            for solver in {id(s): s for s in solvers}.values():
-                solver.destroy()
+        for solver in {id(s): s for s in self._momentum}.values():
+            solver.destroy()
 
 

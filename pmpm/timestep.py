@@ -17,8 +17,8 @@ if TYPE_CHECKING:   # annotations only: nothing imports the simulation at run ti
     from .simulation import Model
 
 
-GROWTH = 1.25   # an adaptive step grows only when it can grow by this factor: each new dt reassembles
-                # the momentum matrices
+GROWTH = 1.25   # an adaptive step grows only when it can grow by this factor (fewer changes of the
+                # momentum matrices' diagonal and the pressure's tolerance)
 FIRST_STEP_SPEEDUP = 4.0   # the first step of a flow from rest: how much faster than its boundaries it may be
 
 
