@@ -137,8 +137,9 @@ class PenaltyForcing:
         rate = kappa * dt if self.two_way else kappa * dt / (1.0 + kappa_cell * dt)
         # two-way: a cell the particle shares is held by the others' penalties too, K_o = (κ_cell − κ) dt,
         # which resist its own motion there: ∂J/∂U = ρ V K (1 + K_o)/(1 + K + K_o). Without K_o, two
-        # beads touching across cells they both fill took their relative motion explicitly and rang,
-        # growing ×3 a step, once the blockage rate's K_o reached a few (dt = 1 ms in a settling bed)
+        # beads touching across cells they both fill had passes that overshot their relative motion
+        # and rang, growing ×3 a step, once the blockage rate made K and K_o tens (a settling bed at
+        # dt = 1 ms; docs/coupling.md, "Dense suspensions")
         others = (kappa_cell - kappa) * dt if self.two_way else 0.0
         response, response_spin = fluid_sums(self.comm, len(state), p, c, offset, fluid.u,
                                              volume * kappa * dt * (1.0 + others) / (1.0 + kappa_cell * dt))[:2]
