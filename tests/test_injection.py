@@ -198,7 +198,8 @@ density = 1000.0
 
 
 def simulate(tmp_path, text, comm=MPI.COMM_SELF, name="case.toml"):
-    path = tmp_path / name
+    # ranks that each run on MPI.COMM_SELF in a shared folder write files of their own
+    path = tmp_path / (name if comm.size == MPI.COMM_WORLD.size else f"rank{MPI.COMM_WORLD.rank}_{name}")
     if comm.rank == 0:
         path.write_text(text)
     comm.Barrier()
