@@ -10,6 +10,14 @@ from mpi4py import MPI
 from numba import njit
 
 
+@njit(cache=True, inline="always")
+def _slip(u, c, v, omega, p, rx, ry, rz):
+    """u − U at the pair's cell, U = v + ω × r the particle's rigid motion there."""
+    return (u[c, 0] - v[p, 0] - (omega[p, 1] * rz - omega[p, 2] * ry),
+            u[c, 1] - v[p, 1] - (omega[p, 2] * rx - omega[p, 0] * rz),
+            u[c, 2] - v[p, 2] - (omega[p, 0] * ry - omega[p, 1] * rx))
+
+
 @njit(cache=True)
 def _fluid_sums(n, particle, cell, offset, u, mass, weight, v, omega):
     out = np.zeros((n, 14))
@@ -30,9 +38,8 @@ def _fluid_sums(n, particle, cell, offset, u, mass, weight, v, omega):
         out[p, 7] += rx * my - ry * mx
         if with_slip:
             w = weight[k]
-            sx = w * (ux - v[p, 0] - (omega[p, 1] * rz - omega[p, 2] * ry))
-            sy = w * (uy - v[p, 1] - (omega[p, 2] * rx - omega[p, 0] * rz))
-            sz = w * (uz - v[p, 2] - (omega[p, 0] * ry - omega[p, 1] * rx))
+            sx, sy, sz = _slip(u, c, v, omega, p, rx, ry, rz)
+            sx, sy, sz = w * sx, w * sy, w * sz
             out[p, 8] += sx
             out[p, 9] += sy
             out[p, 10] += sz
@@ -77,10 +84,7 @@ def _largest_slip(n, particle, cell, offset, u, v, omega):
     speed = np.zeros(n)
     for k in range(len(particle)):
         p, c = particle[k], cell[k]
-        rx, ry, rz = offset[k, 0], offset[k, 1], offset[k, 2]
-        sx = u[c, 0] - v[p, 0] - (omega[p, 1] * rz - omega[p, 2] * ry)
-        sy = u[c, 1] - v[p, 1] - (omega[p, 2] * rx - omega[p, 0] * rz)
-        sz = u[c, 2] - v[p, 2] - (omega[p, 0] * ry - omega[p, 1] * rx)
+        sx, sy, sz = _slip(u, c, v, omega, p, offset[k, 0], offset[k, 1], offset[k, 2])
         speed[p] = max(speed[p], np.sqrt(sx * sx + sy * sy + sz * sz))
     return speed
 
