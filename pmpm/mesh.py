@@ -41,12 +41,13 @@ class Mesh:
 
     # -- construction -----------------------------------------------------------------------------
     @classmethod
-    def from_box(cls, comm, lower, upper, cells, cell_type: str = "hex", patches=()) -> "Mesh":
+    def from_box(cls, comm, lower, upper, cells, cell_type: str = "hex", patches=(), work=None) -> "Mesh":
         """Collective. A box of ``cells`` = (nx, ny, nz) hexahedra, or 6 tetrahedra per hexahedron.
 
         Boundaries are named xmin xmax ymin ymax zmin zmax, and ``patches`` (name, side, lower,
         upper) rename the faces of a side whose centres lie in the box [lower, upper] (an inlet on
-        part of a side; later patches win).
+        part of a side; later patches win). ``work`` (points (m, 3), amounts (m,)), on rank 0: work
+        besides the cells' that the partition shares out too (``pmpm.partition``).
         """
         lower, upper = np.asarray(lower, float), np.asarray(upper, float)
         cells = [int(n) for n in cells]
@@ -79,17 +80,18 @@ class Mesh:
                 index[on] = names.index(name)
             return index, names
 
-        mesh = cls(comm, dm, cell_type, serial_vertices, name_box_faces, start)
+        mesh = cls(comm, dm, cell_type, serial_vertices, name_box_faces, start, work)
         mesh.source = (f"box {'×'.join(map(str, cells))} {cell_type}, "
                        f"[{', '.join(f'{v:g}' for v in lower)}] to [{', '.join(f'{v:g}' for v in upper)}] m")
         return mesh
 
     @classmethod
-    def from_file(cls, comm, path: Path) -> "Mesh":
+    def from_file(cls, comm, path: Path, work=None) -> "Mesh":
         """Collective. A mesh file (gmsh .msh, or any volume format meshio reads), read on rank 0.
 
         Hexahedra or tetrahedra (not mixed). Boundary faces are named by the file's 2-D physical
-        groups (gmsh) where it has them; other boundary faces are named "boundary".
+        groups (gmsh) where it has them; other boundary faces are named "boundary". ``work``: as
+        in :meth:`from_box`.
         """
         start = wallclock.perf_counter()
         read = None
@@ -122,11 +124,11 @@ class Mesh:
             renumber = np.cumsum(used) - 1
             return renumber[index], [n for n, u in zip(names, used) if u]
 
-        mesh = cls(comm, dm, cell_type, serial_vertices, name_file_faces, start)
+        mesh = cls(comm, dm, cell_type, serial_vertices, name_file_faces, start, work)
         mesh.source = f"file {Path(path).name} ({cell_type})"
         return mesh
 
-    def __init__(self, comm, dm, cell_type, serial_vertices, name_boundary_faces, start_time):
+    def __init__(self, comm, dm, cell_type, serial_vertices, name_boundary_faces, start_time, work=None):
         """Collective. Distribute ``dm`` and build the arrays (use the ``from_*`` constructors).
 
         ``serial_vertices(serial cell numbers)`` gives those cells' vertices in the undistributed
@@ -146,7 +148,7 @@ class Mesh:
             if comm.rank == 0:
                 xyz = dm.getCoordinatesLocal().getArray().reshape(-1, 3)
                 centres = xyz[serial_vertices(np.arange(n_global_cells))].mean(axis=1)
-            set_coordinate_partition(dm, comm, centres)
+            set_coordinate_partition(dm, comm, centres, *(work if comm.rank == 0 and work is not None else ()))
         migration = dm.distribute(overlap=1) if comm.size > 1 else None
         self.build_stages["distribute"] = wallclock.perf_counter() - mark
         mark = wallclock.perf_counter()

@@ -1,46 +1,73 @@
 """Which rank owns which cells: recursive coordinate bisection of the cell centres, on rank 0.
 
-A partition that depends on the mesh alone makes a run repeatable: PT-Scotch, DMPlex's default
+A partition that depends on the case alone makes a run repeatable: PT-Scotch, DMPlex's default
 partitioner here, partitions differently from one run to the next, so the ranks summed their
 cells in other orders and two identical 2-rank runs differed by round-off. Bisection by
 coordinates gives each rank a compact block of space (a slab, then boxes), which is also what
 particle ownership wants; its cut is a plane, a little longer than a graph partitioner's on
 irregular domains.
+
+Where particles sit in a flow, each cut also splits their coupling work: a bed that fills the
+lower half of a tall column, cut across its height, would leave one rank all of it. Every cut
+halves the cells; of the planes that do, it takes the one across the longest extent whose sides
+share the particles' work in proportion (within ``WORK_TOLERANCE``), else the fairest.
 """
 from __future__ import annotations
 
 import numpy as np
 from petsc4py import PETSc
 
+# how far from its due share of the particles' work a side may be before a cut across a
+# shorter extent is preferred (a longer cut costs the flow a little more exchange)
+WORK_TOLERANCE = 0.1
 
-def coordinate_bisection(centres: np.ndarray, parts: int) -> np.ndarray:
-    """(n,) the part of each point (n, 3): split the points in two across their longest extent, in
-    proportion to the parts on each side, and again, until one part is left. Ties in a coordinate
-    go by the points' order, so the result depends on the points alone."""
+
+def coordinate_bisection(centres: np.ndarray, parts: int, work_at: np.ndarray | None = None,
+                         work: np.ndarray | None = None) -> np.ndarray:
+    """(n,) the part of each point of ``centres`` (n, 3): split the points in two by a plane, in
+    proportion to the parts on each side, and again, until one part is left. The plane is across
+    the points' longest extent unless ``work`` (m,) at the points ``work_at`` (m, 3), e.g. the
+    particles' volumes at their centres, would then be shared unfairly (module docstring). Ties in
+    a coordinate go by the points' order, so the result depends on the points alone."""
+    if work_at is None:
+        work_at, work = np.zeros((0, 3)), np.zeros(0)
     part = np.empty(len(centres), np.int64)
-    pending = [(np.arange(len(centres)), 0, parts)]
+    pending = [(np.arange(len(centres)), np.arange(len(work_at)), 0, parts)]
     while pending:
-        points, first, count = pending.pop()
+        points, loads, first, count = pending.pop()
         if count == 1:
             part[points] = first
             continue
         left = count // 2
-        along = centres[points]
-        axis = int(np.argmax(along.max(axis=0, initial=-np.inf) - along.min(axis=0, initial=np.inf)))
-        order = points[np.lexsort((points, along[:, axis]))]
         cut = int(round(len(points) * left / count))
-        pending += [(order[:cut], first, left), (order[cut:], first + left, count - left)]
+        along = centres[points]
+        extents = along.max(axis=0, initial=-np.inf) - along.min(axis=0, initial=np.inf)
+        best = None
+        for axis in np.argsort(-extents, kind="stable"):
+            order = points[np.lexsort((points, along[:, axis]))]
+            plane = centres[order[cut], axis] if cut < len(order) else np.inf
+            on_left = work_at[loads, axis] < plane
+            total = work[loads].sum()
+            unfair = abs(work[loads][on_left].sum() / total - left / count) if total > 0 else 0.0
+            if best is None or unfair < best[0]:
+                best = (unfair, order, on_left)
+            if unfair <= WORK_TOLERANCE:
+                break
+        _, order, on_left = best
+        pending += [(order[:cut], loads[on_left], first, left), (order[cut:], loads[~on_left], first + left, count - left)]
     return part
 
 
-def set_coordinate_partition(dm, comm, centres: np.ndarray | None) -> None:
+def set_coordinate_partition(dm, comm, centres: np.ndarray | None, work_at: np.ndarray | None = None,
+                             work: np.ndarray | None = None) -> None:
     """Collective. Make ``dm``'s next ``distribute`` give rank r the cells whose part is r, the
-    parts from ``coordinate_bisection`` of the cell centres (n_cells, 3), which rank 0 passes (it
-    holds the whole undistributed mesh) and the others pass as None."""
+    parts from ``coordinate_bisection`` of the cell centres (n_cells, 3) and the ``work`` at
+    ``work_at``, which rank 0 passes (it holds the whole undistributed mesh) and the others pass
+    as None."""
     partitioner = dm.getPartitioner()
     partitioner.setType(PETSc.Partitioner.Type.SHELL)
     if comm.rank == 0:
-        part = coordinate_bisection(centres, comm.size)
+        part = coordinate_bisection(centres, comm.size, work_at, work)
         sizes = np.bincount(part, minlength=comm.size)
         points = np.argsort(part, kind="stable")
     else:

@@ -32,7 +32,7 @@ from .placement import place_releases
 from .mesh import Mesh
 from .migration import exit_triangles as exit_triangles_of, migrate_particles
 from .ownership import bisect, gather
-from .parallel import allreduce_sum, print0
+from .parallel import agree, allreduce_sum, print0
 from .particles import FIXED, ParticleState, accelerate
 from .reporting import StageTimes
 from .signals import StopRequests, stop_message
@@ -73,11 +73,21 @@ class Model:
 
 
 def build_mesh(comm, case: Case) -> Mesh:
-    """Collective. The case's mesh, distributed over ``comm``."""
+    """Collective. The case's mesh, distributed over ``comm``: where particles start in a flow,
+    with their coupling work shared among the ranks as well as the cells (``pmpm.partition``)."""
+    work = error = None
+    if comm.size > 1 and case.fluid is not None and case.particles is not None:
+        try:
+            if comm.rank == 0:   # a pair's work scales as the cells a particle covers
+                particles = initial_particles(case)
+                work = (particles.x, particles.radius ** 3)
+        except CaseError as exc:   # (a bad particle file: every rank leaves)
+            error = exc
+        agree(comm, error)
     if case.box is not None:
         patches = [(p.name, p.side, p.lower, p.upper) for p in case.patches]
-        return Mesh.from_box(comm, case.box.lower, case.box.upper, case.box.cells, case.mesh.cell_type, patches)
-    return Mesh.from_file(comm, case.resolve(case.mesh.file))
+        return Mesh.from_box(comm, case.box.lower, case.box.upper, case.box.cells, case.mesh.cell_type, patches, work)
+    return Mesh.from_file(comm, case.resolve(case.mesh.file), work)
 
 
 def check_boundaries(case: Case, mesh: Mesh) -> None:

@@ -7,6 +7,7 @@ from mpi4py import MPI
 
 from pmpm.errors import CaseError
 from pmpm.mesh import Mesh
+from pmpm.partition import WORK_TOLERANCE, coordinate_bisection
 from pmpm.serial_mesh import VTK_ORDER, box_tetrahedra
 
 LOWER, UPPER, CELLS = np.array([0.0, 0.0, 0.0]), np.array([1.0, 2.0, 3.0]), (4, 3, 5)
@@ -179,3 +180,38 @@ def test_gmsh_file_whose_only_physical_group_is_a_volume(comm, shared_tmp):
     assert mesh.boundary_names == ["boundary"]
     # the whole surface of the sheared box: the tilted x faces and the walls of test_gmsh_file
     assert mesh.boundary_area()["boundary"] == pytest.approx(2 * 2.0 * 3.0 * np.hypot(1.0, SHEAR) + 10.0, rel=1e-12)
+
+
+def column_with_a_bed(cells=(9, 3, 22), particles=500, bed_height=7.0):
+    """Unit-cell centres of a tall column and random points in its lower third (a settled bed)."""
+    axes = [np.arange(n) + 0.5 for n in cells]
+    centres = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+    points = np.random.default_rng(0).uniform([0, 0, 0], [cells[0], cells[1], bed_height], (particles, 3))
+    return centres, points
+
+
+def test_bisection_shares_the_particles_work():
+    # across the height (the longest extent), one part would hold the whole bed; with the
+    # particles' work the cuts go across the width, and every part still has its share of cells
+    centres, points = column_with_a_bed()
+    cell_of_point = np.ravel_multi_index(np.floor(points).astype(int).T, (9, 3, 22))
+    plain = coordinate_bisection(centres, 2)
+    assert np.bincount(plain[cell_of_point], minlength=2).tolist() == [500, 0]
+    for parts in (2, 4):
+        part = coordinate_bisection(centres, parts, points, np.ones(len(points)))
+        cells = np.bincount(part, minlength=parts)
+        assert cells.max() - cells.min() <= 1
+        shares = np.bincount(part[cell_of_point], minlength=parts) / len(points)
+        # each cut within the tolerance of its due share; two levels of cuts compound it
+        assert np.abs(shares - 1 / parts).max() <= WORK_TOLERANCE * (1 if parts == 2 else 1.5 / 2)
+
+
+@pytest.mark.mpi
+def test_partition_shares_particles_on_ranks(comm):
+    # the same column as a distributed mesh: each rank owns half the cells and about half the bed
+    centres, points = column_with_a_bed()
+    mesh = Mesh.from_box(comm, [0, 0, 0], [9, 3, 22], (9, 3, 22), "hex",
+                         work=(points, np.ones(len(points))) if comm.rank == 0 else None)
+    assert comm.allreduce(mesh.n_owned_cells, op=MPI.MAX) - comm.allreduce(mesh.n_owned_cells, op=MPI.MIN) <= 1
+    mine = np.count_nonzero(mesh.find_owned_cells(points) >= 0) / len(points)
+    assert abs(mine - 1 / comm.size) <= WORK_TOLERANCE
