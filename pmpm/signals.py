@@ -16,6 +16,7 @@ class StopRequests:
 
     def __init__(self):
         self.received = 0
+        self.stopping = 0
         self.previous = {}
 
     def __enter__(self) -> "StopRequests":
@@ -24,6 +25,11 @@ class StopRequests:
         return self
 
     def __exit__(self, *exc):
+        # After a stop, a signal sent to every rank may still be on its way to this one, which
+        # had agreed on another rank's: caught, it is ignored; restored, it would kill this rank
+        # while it writes the state (and mpirun the others), before the summary.
+        if self.stopping:
+            return
         for number, handler in self.previous.items():
             signal.signal(number, handler)
 
@@ -32,7 +38,8 @@ class StopRequests:
 
     def agreed(self, comm) -> int:
         """Collective. The first signal received on any rank (the largest number if several), or 0."""
-        return comm.allreduce(self.received, op=MPI.MAX) if comm.size > 1 else self.received
+        self.stopping = comm.allreduce(self.received, op=MPI.MAX) if comm.size > 1 else self.received
+        return self.stopping
 
 
 def stop_message(state, signal_number: int, output) -> str:
