@@ -19,10 +19,10 @@ from pathlib import Path
 import numpy as np
 from mpi4py import MPI
 from petsc4py import PETSc
-from scipy.spatial import cKDTree
 
 from .errors import CaseError
 from .parallel import agree, allreduce_sum
+from .cell_bins import CellBins, holding_cells
 from .partition import set_coordinate_partition
 from .serial_mesh import VERTICES_PER_CELL, box_hexahedra, box_tetrahedra, cells_to_dmplex, read_mesh_file
 
@@ -219,7 +219,7 @@ class Mesh:
         self.lower, self.upper = np.empty(3), np.empty(3)
         comm.Allreduce(self.vertex_xyz.min(axis=0, initial=np.inf), self.lower, op=MPI.MIN)
         comm.Allreduce(self.vertex_xyz.max(axis=0, initial=-np.inf), self.upper, op=MPI.MAX)
-        self._center_tree = None
+        self._center_bins = None
         self.build_seconds = comm.allreduce(wallclock.perf_counter() - start_time, op=MPI.MAX)
 
     def _build_faces_and_geometry(self):
@@ -305,58 +305,31 @@ class Mesh:
         return array
 
     # -- queries ----------------------------------------------------------------------------------
-    def find_owned_cells(self, points: np.ndarray, candidates: int = 16) -> np.ndarray:
+    def find_owned_cells(self, points: np.ndarray) -> np.ndarray:
         """Local. The owned cell holding each point (n, 3), or -1 where no owned cell holds it.
 
-        The nearest owned cell centre is tested first (it holds the point on regular meshes);
-        points farther from every centre than the largest circumradius lie in no owned cell; the
-        few others are tested against their ``candidates`` nearest cells. Tests use the face planes
-        (cells are convex), so a point on a shared face goes to the first candidate that holds it.
+        Candidates are the owned cells whose centres lie within the largest circumradius of the
+        point, found through a lattice of bins over the centres; the nearest is tested first (it
+        holds the point on regular meshes). Tests use the face planes (cells are convex), so a
+        point on a shared face goes to the first candidate that holds it (``pmpm.cell_bins``).
         """
         points = np.asarray(points, float).reshape(-1, 3)
-        found = np.full(len(points), -1, np.int64)
         if self.n_owned_cells == 0 or len(points) == 0:
-            return found
-        if self._center_tree is None:
+            return np.full(len(points), -1, np.int64)
+        if self._center_bins is None:
             owned = slice(0, self.n_owned_cells)
-            self._center_tree = cKDTree(self.cell_center[owned])
+            self._center_bins = CellBins(self.cell_center[owned], float(np.median(self.cell_volume[owned])) ** (1 / 3))
             reach = self.vertex_xyz[self.cell_vertices[owned]] - self.cell_center[owned, None, :]
             self._circumradius = float(np.sqrt(np.einsum("cvd,cvd->cv", reach, reach).max()))
-        distance, nearest = self._center_tree.query(points, k=1)
-        near = np.flatnonzero(distance <= self._circumradius * (1 + 1e-9))
-        inside = self.contains(nearest[near], points[near])
-        found[near[inside]] = nearest[near[inside]]
-        rest = near[~inside]
-        k = min(candidates, self.n_owned_cells)
-        if len(rest) and k > 1:
-            _, others = self._center_tree.query(points[rest], k=k)
-            others = others.reshape(len(rest), k)
-            for column in range(k):  # nearest first; most points lie in one of the first few
-                inside = self.contains(others[:, column], points[rest])
-                found[rest[inside]] = others[inside, column]
-                rest, others = rest[~inside], others[~inside]
-                if len(rest) == 0:
-                    break
-        return found
+        bins = self._center_bins
+        return holding_cells(self.vertex_xyz, self.cell_vertices, CELL_FACES[self.cell_type], self.cell_center,
+                             self._circumradius * (1 + 1e-9), bins.lower, bins.width, bins.counts, bins.start,
+                             bins.cells, points)
 
     def inside_domain(self, points: np.ndarray) -> np.ndarray:
         """Collective. (n,) bool: the point lies in some rank's owned cells."""
         found = (self.find_owned_cells(points) >= 0).astype(np.int64)
         return allreduce_sum(self.comm, found) > 0
-
-    def contains(self, cells: np.ndarray, points: np.ndarray) -> np.ndarray:
-        """Local. Whether each point lies in (or on) the cell beside it; arrays broadcast together."""
-        cells, points = np.broadcast_arrays(cells[..., None], points)
-        cells = cells[..., 0]
-        vertices = self.vertex_xyz[self.cell_vertices[cells]]               # (..., k, 3)
-        faces = vertices[..., CELL_FACES[self.cell_type], :]                # (..., nf, kf, 3)
-        area = polygon_area_vector(*np.moveaxis(faces, -2, 0))
-        center = faces.mean(axis=-2)
-        mean = vertices.mean(axis=-2)[..., None, :]
-        area *= np.sign(np.einsum("...i,...i->...", area, center - mean))[..., None]
-        size = np.sqrt(np.linalg.norm(area, axis=-1))
-        height = np.einsum("...i,...i->...", points[..., None, :] - center, area) / np.linalg.norm(area, axis=-1)
-        return (height <= 1e-10 * size).all(axis=-1)
 
     def boundary_triangles(self, names) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Collective. Every triangle of the named boundaries, the same on every rank.
@@ -400,14 +373,6 @@ class Mesh:
 
 
 # -- building blocks ------------------------------------------------------------------------------
-def polygon_area_vector(*corners: np.ndarray) -> np.ndarray:
-    """Area × unit normal of triangles or quads given their 3 or 4 corners (each (..., 3)),
-    right-handed in the corner order."""
-    if len(corners) == 3:
-        return 0.5 * np.cross(corners[1] - corners[0], corners[2] - corners[0])
-    return 0.5 * np.cross(corners[2] - corners[0], corners[3] - corners[1])
-
-
 def mean_of_gathers(xyz: np.ndarray, index: np.ndarray) -> np.ndarray:
     """xyz[index].mean(axis=1) for index (m, k), without the (m, k, 3) temporary."""
     total = xyz[index[:, 0]]

@@ -36,7 +36,7 @@ class Touched:
 
 class CellLocator:
     """The touched cells of particles on this rank's owned cells. Built once per mesh (a lattice
-    of bins over the owned cell centres, ``pairs.CellBins``); ``locate`` is local and compiled
+    of bins over the owned cell centres, ``cell_bins.CellBins``); ``locate`` is local and compiled
     (``pairs.touched_pairs``).
 
     Parameters
@@ -49,7 +49,8 @@ class CellLocator:
     """
 
     def __init__(self, mesh, rule: str, subcell_points: int, smooth_reach: bool):
-        from .pairs import NODES, SUBCELL_HEX, SUBCELL_SAMPLED, CellBins
+        from ..cell_bins import CellBins
+        from .pairs import NODES, SUBCELL_HEX, SUBCELL_SAMPLED
         self.mesh, self.smooth_reach = mesh, smooth_reach
         n_owned = mesh.n_owned_cells
         centers = mesh.cell_center[:n_owned]

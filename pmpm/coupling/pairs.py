@@ -14,41 +14,9 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from ..cell_bins import bin_box
+
 NODES, SUBCELL_HEX, SUBCELL_SAMPLED = 0, 1, 2
-
-
-class CellBins:
-    """A lattice of cubic bins over the owned cell centres (CSR: ``start``, ``cells``), bins about
-    ``width`` wide. Built once per mesh."""
-
-    def __init__(self, centers: np.ndarray, width: float):
-        self.lower = centers.min(axis=0, initial=0.0) if len(centers) else np.zeros(3)
-        span = (centers.max(axis=0) - self.lower) if len(centers) else np.zeros(3)
-        width = max(width, float(span.max(initial=0.0)) / 2000.0, 1e-300)
-        # no more bins than about 4 per cell, whatever the grading
-        while np.prod(np.floor(span / width) + 1) > 4 * max(len(centers), 1):
-            width *= 1.5
-        self.width = width
-        self.counts = (np.floor(span / width) + 1).astype(np.int64)
-        flat = self.bin_of(centers)
-        self.cells = np.argsort(flat, kind="stable").astype(np.int64)
-        self.start = np.searchsorted(flat[self.cells], np.arange(int(np.prod(self.counts)) + 1)).astype(np.int64)
-
-    def bin_of(self, points: np.ndarray) -> np.ndarray:
-        """(n,) the bin holding each point (clamped to the lattice), numbered along z fastest."""
-        index = np.clip(((points - self.lower) / self.width).astype(np.int64), 0, self.counts - 1)
-        return np.ravel_multi_index(index.T, self.counts) if len(points) else np.zeros(0, np.int64)
-
-
-@njit(cache=True)
-def _bin_box(x, reach, lower, width, counts):
-    """The lattice index range [lo, hi] (inclusive, per axis) of bins within ``reach`` of ``x``."""
-    lo = np.empty(3, np.int64)
-    hi = np.empty(3, np.int64)
-    for d in range(3):
-        lo[d] = max(int(np.floor((x[d] - reach - lower[d]) / width)), 0)
-        hi[d] = min(int(np.floor((x[d] + reach - lower[d]) / width)), counts[d] - 1)
-    return lo, hi
 
 
 @njit(cache=True, inline="always")
@@ -129,7 +97,7 @@ def touched_pairs(x, radius, candidates, bin_lower, bin_width, bin_counts, bin_s
     bound = 0           # the cells within reach: the arrays' size (a pass of distances, ~10 % of the time)
     for i in range(len(candidates)):
         p = candidates[i]
-        lo, hi = _bin_box(x[p], radius[p] + largest, bin_lower, bin_width, bin_counts)
+        lo, hi = bin_box(x[p], radius[p] + largest, bin_lower, bin_width, bin_counts)
         for bx in range(lo[0], hi[0] + 1):
             for by in range(lo[1], hi[1] + 1):
                 for bz in range(lo[2], hi[2] + 1):
@@ -152,7 +120,7 @@ def touched_pairs(x, radius, candidates, bin_lower, bin_width, bin_counts, bin_s
         p = candidates[i]
         r = radius[p]
         r2 = r * r
-        lo, hi = _bin_box(x[p], r + largest, bin_lower, bin_width, bin_counts)
+        lo, hi = bin_box(x[p], r + largest, bin_lower, bin_width, bin_counts)
         for bx in range(lo[0], hi[0] + 1):
             for by in range(lo[1], hi[1] + 1):
                 for bz in range(lo[2], hi[2] + 1):
