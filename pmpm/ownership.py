@@ -18,6 +18,7 @@ from dataclasses import dataclass, fields
 
 import numpy as np
 from mpi4py import MPI
+from numba import njit
 
 from .particles import ParticleState
 
@@ -191,8 +192,10 @@ class Halo:
     together, sorted by id).
 
     owned : (n_local,) bool; send : per neighbour rank, the local rows of owned particles it holds
-    as ghosts; receive : per neighbour rank, the local rows of its particles held here; shared :
-    per rank, the local rows of the particles both hold (owned or ghost on either), by id.
+    as ghosts; receive : per neighbour rank, the local rows of its particles held here;
+    shared_rows : the local rows of the particles another rank holds too (owned or ghost on
+    either), sorted; shared_at : per such rank, the positions in ``shared_rows`` of the particles
+    both hold, by id.
 
     Notes
     -----
@@ -206,7 +209,8 @@ class Halo:
     owned: np.ndarray
     send: dict
     receive: dict
-    shared: dict
+    shared_rows: np.ndarray
+    shared_at: dict
     sent: int = 0          # bytes this rank has sent, the ghosts included
 
     @classmethod
@@ -249,9 +253,10 @@ class Halo:
         keep = (other >= 0) & (other != comm.rank)
         local_row, other = local_row[keep], other[keep]
         pairs = np.lexsort((local_row, other))
-        shared = {int(r): local_row[pairs][other[pairs] == r] for r in np.unique(other)}
+        shared_rows = np.unique(local_row)
+        shared_at = {int(r): np.searchsorted(shared_rows, local_row[pairs][other[pairs] == r]) for r in np.unique(other)}
         sent = sum(values.nbytes for values in rows.values())
-        return cls(comm, owned, send, receive, shared, sent), local
+        return cls(comm, owned, send, receive, shared_rows, shared_at, sent), local
 
     def _swap(self, outgoing: dict, incoming: dict, array: np.ndarray, combine) -> None:
         """Send array[outgoing[r]] to each r; each received block goes to array[incoming[r]] by ``combine``."""
@@ -290,44 +295,67 @@ class Halo:
         """Collective. Copies of particles changed by the ranks that hold them: each holder's change
         since ``reference`` (the arrays as they were at the last merge, the same on every holder) is
         sent to the other holders, and every holder sets reference + the changes of all, added in
-        rank order (so the copies stay equal to the bit); the reference arrays take the merged
-        values. Rows held here only are left as they are. The block Gauss–Seidel's exchange per sweep.
+        rank order (so the copies stay equal to the bit); the reference arrays' shared rows take the
+        merged values. Rows held here only are left as they are, in both. The block Gauss–Seidel's
+        exchange per sweep: it touches the shared rows only.
 
         ``split`` (n_local,): the number of holders each particle's mass is split among (mass
         splitting, Tonge et al. 2012): each holder's copy had 1/split of the mass, and the merged
         value is reference + the mean of the changes (so still reference + Σ impulses / mass)."""
-        n = len(self.owned)
-        if not self.shared:
-            for array, before in zip(arrays, reference):
-                before[:n] = array[:n]
+        rows = self.shared_rows
+        if len(rows) == 0:
             return
-        now = np.hstack([array[:n].reshape(n, -1) for array in arrays])  # (rows past the particles: the world)
-        then = np.hstack([before[:n].reshape(n, -1) for before in reference])
-        change = now - then
-        received = {}
-        requests = []
-        for r, rows in self.shared.items():
-            received[r] = np.empty((len(rows), now.shape[1]))
+        arrays, reference = tuple(arrays), tuple(reference)
+        if not all(a.ndim == 2 and a.flags.c_contiguous for a in arrays + reference):
+            raise ValueError("Halo.merge takes C-contiguous 2-D arrays")
+        change = _changes(rows, arrays, reference)
+        received, requests = {}, []
+        for r, at in self.shared_at.items():
+            received[r] = np.empty((len(at), change.shape[1]))
             requests.append(self.comm.Irecv(received[r], source=r, tag=78))
-        outgoing = [np.ascontiguousarray(change[rows]) for rows in self.shared.values()]
-        requests += [self.comm.Isend(block, dest=r, tag=78) for r, block in zip(self.shared, outgoing)]
+        outgoing = [np.ascontiguousarray(change[at]) for at in self.shared_at.values()]
+        requests += [self.comm.Isend(block, dest=r, tag=78) for r, block in zip(self.shared_at, outgoing)]
         self.sent += sum(block.nbytes for block in outgoing)
         MPI.Request.Waitall(requests)
-        rows = np.unique(np.concatenate(list(self.shared.values())))
-        total = np.zeros_like(now)
-        for r in sorted([*self.shared, self.comm.rank]):
+        total = np.zeros_like(change)
+        for r in sorted([*self.shared_at, self.comm.rank]):
             if r == self.comm.rank:
-                total[rows] += change[rows]
+                total += change
             else:
-                total[self.shared[r]] += received[r]
-        if split is not None:
-            total[rows] /= split[rows, None]
-        now[rows] = then[rows] + total[rows]
-        column = 0
-        for array, before in zip(arrays, reference):
-            width = array[:n].reshape(n, -1).shape[1]
-            array[:n] = before[:n] = now[:, column:column + width].reshape(array[:n].shape)
-            column += width
+                total[self.shared_at[r]] += received[r]
+        _apply_changes(rows, arrays, reference, total, np.ones(0) if split is None else split)
+
+
+@njit(cache=True)
+def _changes(rows, arrays, reference):
+    """(len(rows), Σ widths): each array's change since its reference on ``rows``, side by side."""
+    width = 0
+    for k in range(len(arrays)):
+        width += arrays[k].shape[1]
+    out = np.empty((len(rows), width))
+    column = 0
+    for k in range(len(arrays)):
+        now, before = arrays[k], reference[k]
+        for i in range(len(rows)):
+            for j in range(now.shape[1]):
+                out[i, column + j] = now[rows[i], j] - before[rows[i], j]
+        column += now.shape[1]
+    return out
+
+
+@njit(cache=True)
+def _apply_changes(rows, arrays, reference, total, split):
+    """Each array and its reference set, on ``rows``, to reference + the changes ``total`` (as from
+    ``_changes``), divided by ``split`` (per local row; empty: by 1)."""
+    column = 0
+    for k in range(len(arrays)):
+        now, before = arrays[k], reference[k]
+        for i in range(len(rows)):
+            r = rows[i]
+            for j in range(now.shape[1]):
+                change = total[i, column + j] if len(split) == 0 else total[i, column + j] / split[r]
+                now[r, j] = before[r, j] = before[r, j] + change
+        column += now.shape[1]
 
 
 def _assign(array, rows, values):

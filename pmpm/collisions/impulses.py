@@ -195,6 +195,19 @@ def sweep_once(rows, inv_kn, inv_kt, first, second, normal, r_first, r_second, u
 
 
 @njit(cache=True)
+def change_since(bodies, v, w, arm, saved):
+    """The largest change of a contact point's velocity component, |Δv_d| + arm |Δω_d|, of
+    ``bodies`` since their (v, ω) were ``saved`` (len(bodies), 6), which then takes them (m/s)."""
+    largest = 0.0
+    for k in range(len(bodies)):
+        b = bodies[k]
+        for d in range(3):
+            largest = max(largest, abs(v[b, d] - saved[k, d]) + arm[b] * abs(w[b, d] - saved[k, 3 + d]))
+            saved[k, d], saved[k, 3 + d] = v[b, d], w[b, d]
+    return largest
+
+
+@njit(cache=True)
 def warm_start(rows, first, second, normal, r_first, r_second, mu, inv_m, inv_i, v, w, lam_n, lam_t):
     """Apply remembered impulses (in ``lam_n``, ``lam_t``) after projecting them on today's normals
     and Coulomb cones; the projected values replace them."""

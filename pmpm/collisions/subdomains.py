@@ -235,8 +235,8 @@ def block_sweeps(halo: Halo, rows, contacts, target, mu, bodies, split, lam_n, l
     np.maximum.at(arm, b, r_second[rows])
     watched = np.flatnonzero(np.append(halo.owned, False) & (inv_m > 0) & (arm > 0))
     done, pending, largest = 0, None, np.zeros(1)
+    saved = np.hstack([v[watched], w[watched]])
     while done < budget:
-        before_v, before_w = v[watched], w[watched]
         kernels.impulses.sweep_once(rows, inv_kn, inv_kt, first, second, normal, r_first, r_second, u_wall, target,
                                     mu, inv_m, inv_i, v, w, lam_n, lam_t)
         halo.merge(reference, v, w, split=split)
@@ -245,8 +245,7 @@ def block_sweeps(halo: Halo, rows, contacts, target, mu, bodies, split, lam_n, l
             pending.Wait()
             if largest[0] <= tol:
                 break
-        change = np.abs(v[watched] - before_v) + arm[watched, None] * np.abs(w[watched] - before_w)
-        largest = np.array([change.max(initial=0.0)])
+        largest = np.array([kernels.impulses.change_since(watched, v, w, arm, saved)])
         pending = halo.comm.Iallreduce(MPI.IN_PLACE, largest, op=MPI.MAX)
     if pending is not None:
         pending.Wait()
