@@ -231,8 +231,8 @@ def block_sweeps(halo: Halo, rows, contacts, target, mu, bodies, split, lam_n, l
     inv_kn = np.divide(1.0, k_n, out=np.zeros(len(rows)), where=k_n > 0)
     inv_kt = np.divide(1.0, k_t, out=np.zeros(len(rows)), where=k_t > 0)
     arm = np.zeros(len(inv_m))
-    np.maximum.at(arm, a, r_first[rows])
-    np.maximum.at(arm, b, r_second[rows])
+    arm[b] = r_second[rows]   # a body's radius wherever it touches (0 for the world)
+    arm[a] = r_first[rows]
     watched = np.flatnonzero(np.append(halo.owned, False) & (inv_m > 0) & (arm > 0))
     done, pending, largest = 0, None, np.zeros(1)
     saved = np.hstack([v[watched], w[watched]])
