@@ -816,6 +816,34 @@ def test_pair_search_matches_the_direct_test(spread):
     expected = np.argwhere(close & (chosen[:, None] | chosen[None]))
     assert len(expected) > 10
     assert np.array_equal(candidate_pairs(x, radius, reach, kernels().cell_list, around), expected)
+    # each particle with its own reach (its travel in a step): r_i + r_j (+ 1e-6) + reach_i + reach_j
+    each = rng.uniform(0.0, 0.003, 600) * (rng.random(600) < 0.1)
+    close = np.triu(distance <= (radius[:, None] + radius[None]) * (1 + 1e-6) + each[:, None] + each[None], 1)
+    assert np.array_equal(candidate_pairs(x, radius, each, kernels().cell_list), np.argwhere(close))
+
+
+def test_a_dense_step_finds_its_contacts_by_each_particle_s_travel():
+    """The dense step's contacts are searched by each particle's own travel, not by the reach of
+    the fastest: the same contacts, with the same gaps, normals and times, as the search by reach."""
+    from pmpm.collisions.jit import kernels
+    from pmpm.collisions.search import find_contacts
+    from pmpm.collisions.solver import Bodies
+    rng = np.random.default_rng(8)
+    centres = np.stack(np.meshgrid(*[np.arange(8) * 0.01005] * 3, indexing="ij"), -1).reshape(-1, 3)
+    particles = ParticleState.empty().appended(np.arange(len(centres)), centres, rng.normal(0, 0.05, centres.shape),
+                                               np.zeros_like(centres), np.full(len(centres), 0.005),
+                                               np.full(len(centres), 2500.0), np.zeros(len(centres), np.int8))
+    particles.v[0] = [3.0, 0.0, 0.0]    # one fast particle sets the reach for everyone
+    bodies, dt = Bodies.of(particles), 1e-3
+    reach = 2.0 * 1.25 * 3.0 * dt
+    by_travel, dense, acting = find_contacts(bodies, None, dt, reach, 0.9, 0.3, kernels(), dense_contacts=10)
+    by_reach, _, acting_by_reach = find_contacts(bodies, None, dt, reach, 0.9, 0.3, kernels(), dense_contacts=10 ** 9)
+    assert dense and acting == acting_by_reach > 100
+    can_act = (by_reach.gap <= np.linalg.norm(bodies.v[by_reach.first] - bodies.v[by_reach.second], axis=1) * dt
+               + 1e-6 * 0.005)
+    assert len(by_reach) > len(by_travel) and np.count_nonzero(can_act) == len(by_travel)
+    for name in ("first", "second", "gap", "normal", "time"):
+        assert np.array_equal(getattr(by_travel, name), getattr(by_reach, name)[can_act]), name
 
 
 @pytest.mark.mpi

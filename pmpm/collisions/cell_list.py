@@ -1,7 +1,7 @@
 """The broad search for particle pairs, compiled (numba): a cell list.
 
-The centres are sorted into cubic cells of side 2 r_max + reach (a counting sort), so every pair
-closer than that lies in the same or in neighbouring cells; each particle then checks the 27
+The centres are sorted into cubic cells of side 2 (r_max + the largest reach) (a counting sort),
+so every pair closer than that lies in the same or in neighbouring cells; each particle then checks the 27
 cells around its own. O(n) for a pack (a few particles per cell). Cells are grown when the
 particles are spread thinly (at most 8 per particle), so a gas in a large domain costs no more
 than its particles.
@@ -16,12 +16,13 @@ from .settings import CONTACT_TOL
 
 @njit(cache=True)
 def close_pairs(x, radius, reach, chosen):
-    """(k, 2) int64 pairs i < j, sorted, with |x_i − x_j| <= (r_i + r_j)(1 + 1e-6) + ``reach``
-    (m) and ``chosen[i]`` or ``chosen[j]``. x (n, 3), radius (n,), chosen (n,) bool."""
+    """(k, 2) int64 pairs i < j, sorted, with |x_i − x_j| <= (r_i + r_j)(1 + 1e-6) + reach_i +
+    reach_j (m) and ``chosen[i]`` or ``chosen[j]``. x (n, 3), radius (n,), reach (n,) m, chosen
+    (n,) bool."""
     n = len(radius)
     if n < 2:
         return np.zeros((0, 2), np.int64)
-    cell = 2.0 * radius.max() * (1.0 + CONTACT_TOL) + reach
+    cell = 2.0 * radius.max() * (1.0 + CONTACT_TOL) + 2.0 * reach.max()
     lower = np.empty(3)
     dims = np.empty(3, np.int64)
     for d in range(3):
@@ -65,7 +66,7 @@ def close_pairs(x, radius, reach, chosen):
                         if j <= i or not (chosen[i] or chosen[j]):
                             continue
                         d0, d1, d2 = x[i, 0] - x[j, 0], x[i, 1] - x[j, 1], x[i, 2] - x[j, 2]
-                        limit = (radius[i] + radius[j]) * (1.0 + CONTACT_TOL) + reach
+                        limit = (radius[i] + radius[j]) * (1.0 + CONTACT_TOL) + reach[i] + reach[j]
                         if d0 * d0 + d1 * d1 + d2 * d2 > limit * limit:
                             continue
                         if count == capacity:

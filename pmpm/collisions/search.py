@@ -1,7 +1,8 @@
 """Broad search: the contacts that may act within a step, as a ``ContactRecord``.
 
 Particle pairs come from a cell list of the centres (every pair closer than r_i + r_j + reach;
-``cell_list``), wall candidates from the walls' grid (``Walls.near``: boxes and bounding spheres
+``cell_list``; where the step may be dense, first those closer than r_i + r_j + each one's travel
+in the step, which hold every pair that can act), wall candidates from the walls' grid (``Walls.near``: boxes and bounding spheres
 of the triangles, grown by how far each moves in the step); the compiled narrow phase
 (``narrow``) keeps those whose gap is within reach and computes gap, normal and contact time.
 ``reach`` bounds how far two bodies can close in a step: twice the largest speed × dt between
@@ -29,16 +30,34 @@ def no_walls() -> tuple:
     return (z3, z3, z3, z3, z3, z3, z3, zb, zb, zb)
 
 
-def candidate_pairs(x: np.ndarray, radius: np.ndarray, reach: float, cell_list,
+def candidate_pairs(x: np.ndarray, radius: np.ndarray, reach, cell_list,
                     around: np.ndarray | None = None) -> np.ndarray:
-    """(k, 2) int64 pairs i < j, sorted, of centres closer than r_i + r_j + ``reach`` (m), by the
-    compiled cell list; with ``around`` (indices), only the pairs with one of them."""
+    """(k, 2) int64 pairs i < j, sorted, of centres closer than r_i + r_j + ``reach`` (m; or
+    reach_i + reach_j, one per particle), by the compiled cell list; with ``around`` (indices),
+    only the pairs with one of them."""
     chosen = np.ones(len(x), np.bool_)
     if around is not None:
         chosen[:] = False
         chosen[around] = True
-    return cell_list.close_pairs(np.ascontiguousarray(x, float), np.ascontiguousarray(radius, float), float(reach),
-                                 chosen)
+    each = np.broadcast_to(np.asarray(reach, float), (len(x),)) if np.ndim(reach) else np.full(len(x), 0.5 * reach)
+    return cell_list.close_pairs(np.ascontiguousarray(x, float), np.ascontiguousarray(radius, float),
+                                 np.ascontiguousarray(each), chosen)
+
+
+def pair_contacts(bodies, search_reach, reach: float, dt: float, kernels, around, owned) -> tuple:
+    """The particle pairs of ``find_contacts``: candidates closer than r_i + r_j + ``search_reach``
+    (m, or one reach per particle each side, ``candidate_pairs``), through the narrow phase (kept
+    within ``reach``); returns pairs, keep, acts, counted (acts on the owner of ``first``),
+    normal, gap, time."""
+    n = len(bodies.radius) - 1
+    pairs = candidate_pairs(bodies.x[:n], bodies.radius[:n], search_reach, kernels.cell_list, around)
+    keep, acts, normal, gap, time = kernels.narrow.pair_contacts(pairs[:, 0], pairs[:, 1], bodies.x, bodies.v,
+                                                                 bodies.radius, bodies.free, reach, dt)
+    counted = acts
+    if owned is not None:
+        mine = owned[pairs[:, 0]] | owned[pairs[:, 1]]
+        keep, acts, counted = keep & mine, acts & mine, acts & owned[pairs[:, 0]]
+    return pairs, keep, acts, counted, normal, gap, time
 
 
 def find_contacts(bodies, walls: Walls | None, dt: float, reach: float, restitution: float, friction: float,
@@ -63,13 +82,13 @@ def find_contacts(bodies, walls: Walls | None, dt: float, reach: float, restitut
     n = len(bodies.radius) - 1
     x, v, radius, free = bodies.x, bodies.v, bodies.radius, bodies.free
     narrow = kernels.narrow
-    pairs = candidate_pairs(x[:n], radius[:n], reach, kernels.cell_list, around)
-    keep, acts, normal, gap, time = narrow.pair_contacts(pairs[:, 0], pairs[:, 1], x, v, radius, free, reach, dt)
-    counted = acts
-    if owned is not None:
-        mine = owned[pairs[:, 0]] | owned[pairs[:, 1]]
-        keep, acts, counted = keep & mine, acts & mine, acts & owned[pairs[:, 0]]
-    pair_part = (keep, acts, pairs, normal, gap, time)
+    # A pair can act only if its gap closes within dt at the relative speed of the centres, at most
+    # the sum of their speeds: searched by each particle's own travel first, the pairs that can
+    # act are all found (the dense step needs no others) among far fewer than within the reach of
+    # the fastest particle. An event step needs every pair within reach: searched again then.
+    by_travel = dense_contacts > 0
+    travel = np.minimum(np.linalg.norm(v[:n], axis=1) * dt * (1 + 1e-9), 0.5 * reach) if by_travel else reach
+    pairs, keep, acts, counted, normal, gap, time = pair_contacts(bodies, travel, reach, dt, kernels, around, owned)
     wall_part = None
     mobile = np.flatnonzero(free[:n])
     if around is not None:
@@ -77,14 +96,17 @@ def find_contacts(bodies, walls: Walls | None, dt: float, reach: float, restitut
     if owned is not None:
         mobile = mobile[owned[mobile]]
     if walls is not None and len(walls) and len(mobile):
-        travel = walls.travel(dt)
-        p, tri = walls.near(x[mobile], radius[mobile] + 0.5 * reach, extra=travel)
+        wall_travel = walls.travel(dt)
+        p, tri = walls.near(x[mobile], radius[mobile] + 0.5 * reach, extra=wall_travel)
         p = mobile[p]
-        wall_part = (p, tri) + narrow.wall_contacts(p, tri, x, v, radius, wall_arrays(walls), travel, 0.5 * reach, dt)
+        wall_part = (p, tri) + narrow.wall_contacts(p, tri, x, v, radius, wall_arrays(walls), wall_travel,
+                                                    0.5 * reach, dt)
     acting = int(counted.sum()) + (int(wall_part[3].sum()) if wall_part is not None else 0)
     if comm is not None:
         acting = comm.allreduce(acting)
     dense = 0 < dense_contacts <= acting
+    if not dense and by_travel:
+        pairs, keep, acts, counted, normal, gap, time = pair_contacts(bodies, reach, reach, dt, kernels, around, owned)
     # a dense step needs only the contacts that can act; an event step all within reach
     take = np.flatnonzero(acts if dense else keep)
     k = len(take)
