@@ -125,7 +125,7 @@ SCHEMA: dict[str, tuple[Key, ...]] = {
     "collisions": (
         Key("restitution", "float", 0.9, "0..1"),
         Key("friction", "float", 0.3, ">=0", help="Coulomb friction coefficient"),
-        Key("rolling_friction", "float", 0.0, ">=0", help="rolling resistance coefficient"),
+        Key("rolling_friction", "float", 0.0, ">=0", help="rolling (and spin) resistance coefficient at walls"),
         Key("gather_contacts", "int", 4096, ">=0",
             help="without a fluid, on several ranks: steps with fewer contacts over all ranks are solved as on "
                  "one rank (the contacts' particles gathered), larger ones by block Gauss-Seidel over the ranks"),

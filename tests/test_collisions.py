@@ -359,6 +359,26 @@ def test_rolling_friction_deceleration():
     assert state.omega[0, 1] * r == pytest.approx(state.v[0, 0], rel=1e-9)
 
 
+@pytest.mark.parametrize("mu_r", [0.0, 0.02])
+def test_spin_about_the_contact_normal_stops_by_rolling_friction(mu_r):
+    """A ball at rest on a floor, spinning about the vertical: a point contact holds no torque
+    about its normal, so without rolling friction it spins on; with μ_r the rolling-friction torque
+    μ_r N r slows it at 2.5 μ_r g / r (within 1 %) until it stops, and it stays stopped."""
+    r, dt, spin = 0.01, 1e-4, 5.0
+    state = particles([[0.0, 0.0, r]], radius=r, omega=[[0.0, 0.0, spin]])
+    walls = floor(restitution=0.5, friction=0.5, rolling_friction=mu_r)
+    settings = CollisionSettings(rest_speed=3 * G * dt)
+    memory = None
+    for _ in range(500):
+        memory = step_under_gravity(state, walls, dt, settings, memory).memory
+    slowing = 2.5 * mu_r * G / r
+    assert (spin - state.omega[0, 2]) / (500 * dt) == pytest.approx(slowing, rel=0.01, abs=1e-12)
+    if mu_r > 0:
+        for _ in range(int(spin / slowing / dt)):
+            memory = step_under_gravity(state, walls, dt, settings, memory).memory
+        assert np.abs(state.omega[0]).max() < 1e-12 and np.abs(state.v[0]).max() < 1e-9
+
+
 def test_conveyor_surface_drags_a_ball():
     """A ball at rest dropped gently on a belt moving at U (surface motion): with enough friction
     it rolls at 2/7 U after the first contact; the belt itself stays in place."""

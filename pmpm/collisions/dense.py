@@ -74,7 +74,8 @@ def dense_step(bodies, record, warm_n, warm_t, settings, dt, walls, kernels, cou
                                  record.friction, inv_m, inv_i, v, w, lam_n, lam_t, COLD_SWEEPS * settings.dense_sweeps,
                                  tol)
         impulses.limit_energy(members, inv_m, inv_i, v, w, v0, w0, energy, ENERGY_TOL)
-    finish(bodies, record, rows, lam_n, lam_t, v0, touching, hits, hit_time, dt, sweeps, counters, extra)
+    finish(bodies, record, rows, lam_n, lam_t, v0, touching, hits, hit_time, dt, sweeps, counters, extra,
+           wall_arrays(walls)[6])
     return lam_n, lam_t
 
 
@@ -93,10 +94,11 @@ def targets(bodies, record, r_first, r_second, settings, dt) -> tuple:
     return closing, touching, hits, target, hit_time
 
 
-def finish(bodies, record, rows, lam_n, lam_t, v0, touching, hits, hit_time, dt, sweeps, counters, extra,
+def finish(bodies, record, rows, lam_n, lam_t, v0, touching, hits, hit_time, dt, sweeps, counters, extra, wall_omega,
            to_owners=None) -> None:
     """After the solve of ``rows``: rolling friction, every body moved to the step's end, the counts.
-    ``to_owners`` (on several ranks): sums the ghost rows of per-body arrays on their owners."""
+    ``wall_omega``: the walls' angular velocities (triangles, 3); ``to_owners`` (on several ranks):
+    sums the ghost rows of per-body arrays on their owners."""
     n, first, second, wall = len(bodies.radius) - 1, record.first, record.second, record.triangle >= 0
     v, w = bodies.v, bodies.w
     # each body's velocity changed at the impulse-weighted time of its contacts (0 touching, t_c
@@ -113,8 +115,8 @@ def finish(bodies, record, rows, lam_n, lam_t, v0, touching, hits, hit_time, dt,
     sticking = touching & (lam_n > 0) & (size < record.friction * lam_n * (1 - 1e-9))
     rolling = rows[wall[rows] & (record.rolling_friction[rows] > 0) & sticking[rows]]
     impulses = jit.kernels().impulses
-    impulses.roll_resistance(rolling, first, record.normal, record.wall_velocity, lam_n, record.rolling_friction,
-                             bodies.inv_m, bodies.radius, v, w)
+    impulses.roll_resistance(rolling, first, record.triangle, record.normal, record.wall_velocity, wall_omega, lam_n,
+                             record.rolling_friction, bodies.inv_m, bodies.inv_i, bodies.radius, v, w)
     bodies.x += v * dt + displacement
     active = rows[lam_n[rows] > 0]
     impact = hits[active]

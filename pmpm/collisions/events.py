@@ -241,7 +241,8 @@ def settle(t, seeds, mode, warm, params, bodies, contacts, walls, work, memory, 
         if (triangle[c] >= 0 and mu_r[c] > 0 and lam_n[c] > 0 and size < mu_eff[c] * lam_n[c] * (1 - 1e-9)):
             rolling[n_rolling] = c
             n_rolling += 1
-    roll_resistance(rolling[:n_rolling], first, normal, u_wall, lam_n, mu_r, inv_m, radius, v, w)
+    roll_resistance(rolling[:n_rolling], first, triangle, normal, u_wall, walls[6], lam_n, mu_r, inv_m, inv_i, radius,
+                    v, w)
     for c in chosen:
         acc_n[c] += lam_n[c]
         for d in range(3):

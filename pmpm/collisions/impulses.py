@@ -225,13 +225,19 @@ def warm_start(rows, first, second, normal, r_first, r_second, mu, inv_m, inv_i,
 
 
 @njit(cache=True)
-def roll_resistance(rows, first, normal, u_wall, lam_n, mu_r, inv_m, radius, v, w):
+def roll_resistance(rows, first, triangle, normal, u_wall, wall_omega, lam_n, mu_r, inv_m, inv_i, radius, v, w):
     """Rolling friction at resting wall contacts ``rows``: the torque μ_r N r against rolling, with
     the rolling constraint kept, slows the rolling velocity relative to the wall by
-    (5/7) μ_r λ_n / m and the spin with it (Δω = n × Δv / r), never past a stop."""
+    (5/7) μ_r λ_n / m and the spin with it (Δω = n × Δv / r); the same torque against the spin
+    about the contact normal relative to the wall's (``wall_omega`` per triangle; a point contact
+    has no other resistance to it) slows that spin by μ_r λ_n r / I. Neither past a stop."""
     for c in rows:
         i = first[c]
         n = vec(normal, c)
+        relative = dot(vec(w, i), n) - dot(vec(wall_omega, triangle[c]), n)
+        twist = min(mu_r[c] * lam_n[c] * radius[i] * inv_i[i], abs(relative))
+        for d in range(3):
+            w[i, d] -= np.sign(relative) * twist * n[d]
         rolling = sub(vec(v, i), vec(u_wall, c))
         rolling = sub(rolling, scale(n, dot(rolling, n)))
         speed = norm(rolling)

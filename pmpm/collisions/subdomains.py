@@ -210,7 +210,7 @@ def dense_blocks(halo: Halo, bodies, record, rows, warm_n, warm_t, settings, dt,
         lam_n *= s
         lam_t *= s
     finish(bodies, record, rows, lam_n, lam_t, v0, touching, hits, hit_time, dt, sweeps, counters, extra,
-           to_owners=halo.to_owners)
+           wall_arrays(walls)[6], to_owners=halo.to_owners)
     extra["contacts"] = len(rows)
     return lam_n, lam_t
 
