@@ -254,7 +254,8 @@ class Halo:
         local_row, other = local_row[keep], other[keep]
         pairs = np.lexsort((local_row, other))
         shared_rows = np.unique(local_row)
-        shared_at = {int(r): np.searchsorted(shared_rows, local_row[pairs][other[pairs] == r]) for r in np.unique(other)}
+        shared_at = {int(r): np.searchsorted(shared_rows, local_row[pairs][other[pairs] == r])
+                     for r in np.unique(other)}
         sent = sum(values.nbytes for values in rows.values())
         return cls(comm, owned, send, receive, shared_rows, shared_at, sent), local
 

@@ -54,7 +54,8 @@ def coordinate_bisection(centres: np.ndarray, parts: int, work_at: np.ndarray | 
             if unfair <= WORK_TOLERANCE:
                 break
         _, order, on_left = best
-        pending += [(order[:cut], loads[on_left], first, left), (order[cut:], loads[~on_left], first + left, count - left)]
+        pending += [(order[:cut], loads[on_left], first, left),
+                    (order[cut:], loads[~on_left], first + left, count - left)]
     return part
 
 

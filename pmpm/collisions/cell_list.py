@@ -1,8 +1,8 @@
 """The broad search for particle pairs, compiled (numba): a cell list.
 
 The centres are sorted into cubic cells of side 2 (r_max + the largest reach) (a counting sort),
-so every pair closer than that lies in the same or in neighbouring cells; each particle then checks the 27
-cells around its own. O(n) for a pack (a few particles per cell). Cells are grown when the
+so every pair closer than that lies in the same or in neighbouring cells; each particle then
+checks the 27 cells around its own. O(n) for a pack (a few particles per cell). Cells are grown when the
 particles are spread thinly (at most 8 per particle), so a gas in a large domain costs no more
 than its particles.
 """

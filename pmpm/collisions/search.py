@@ -2,12 +2,12 @@
 
 Particle pairs come from a cell list of the centres (every pair closer than r_i + r_j + reach;
 ``cell_list``; where the step may be dense, first those closer than r_i + r_j + each one's travel
-in the step, which hold every pair that can act), wall candidates from the walls' grid (``Walls.near``: boxes and bounding spheres
-of the triangles, grown by how far each moves in the step); the compiled narrow phase
-(``narrow``) keeps those whose gap is within reach and computes gap, normal and contact time.
-``reach`` bounds how far two bodies can close in a step: twice the largest speed × dt between
-particles, once it (plus the wall's own travel) for a wall; a particle that becomes faster
-within the step makes the solver search again
+in the step, which hold every pair that can act), wall candidates from the walls' grid
+(``Walls.near``: boxes and bounding spheres of the triangles, grown by how far each moves in the
+step); the compiled narrow phase (``narrow``) keeps those whose gap is within reach and computes
+gap, normal and contact time. ``reach`` bounds how far two bodies can close in a step: twice the
+largest speed × dt between particles, once it (plus the wall's own travel) for a wall; a particle
+that becomes faster within the step makes the solver search again
 (``solver.advance_with_collisions``).
 """
 from __future__ import annotations
