@@ -54,6 +54,9 @@ BAD_INPUTS = [
     ("overlapping a wall", ("position = [0.02, 0.02, 0.08]", "position = [0.005, 0.05, 0.05]"), "wall"),
     ("missing mesh file", ("box = { lower = [0, 0, 0], upper = [0.1, 0.1, 0.1], cells = [4, 4, 4] }", 'file = "nope.msh"'), "nope.msh"),
     ("missing particle file", ("[collisions]", "[collisions]\n[particles]\nfile = \"nope.txt\""), "nope.txt"),
+    # read by rank 0 alone while the mesh is partitioned (its work shared): every rank must leave
+    ("missing particle file in a flow", ("[collisions]", "[collisions]\n[fluid]\ndensity = 1.0\nviscosity = 1e-3\n"
+                                         "[particles]\nfile = \"nope.txt\""), "nope.txt"),
     ("unknown boundary", ("[collisions]", "[collisions]\n[boundary.inlet]\ntype = \"wall\""), 'no boundary "inlet"'),
 ]
 
