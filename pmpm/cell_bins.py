@@ -95,6 +95,7 @@ def holds(vertex_xyz, cell_vertices, faces, cell, point):
 
 @njit(cache=True, inline="always")
 def distance2(point, centers, c):
+    """|point − centers[c]|² (m²)."""
     dx, dy, dz = point[0] - centers[c, 0], point[1] - centers[c, 1], point[2] - centers[c, 2]
     return dx * dx + dy * dy + dz * dz
 
