@@ -101,6 +101,20 @@ def distance2(point, centers, c):
 
 
 @njit(cache=True)
+def bins_within(point, reach, bin_lower, bin_width, bin_counts):
+    """The flat numbers of the bins within ``reach`` of ``point`` (at most the box of bins around it)."""
+    lo, hi = bin_box(point, reach, bin_lower, bin_width, bin_counts)
+    found = np.empty(max((hi[0] - lo[0] + 1) * (hi[1] - lo[1] + 1) * (hi[2] - lo[2] + 1), 0), np.int64)
+    k = 0
+    for bx in range(lo[0], hi[0] + 1):
+        for by in range(lo[1], hi[1] + 1):
+            for bz in range(lo[2], hi[2] + 1):
+                found[k] = (bx * bin_counts[1] + by) * bin_counts[2] + bz
+                k += 1
+    return found
+
+
+@njit(cache=True)
 def holding_cells(vertex_xyz, cell_vertices, faces, centers, reach, bin_lower, bin_width, bin_counts,
                   bin_start, bin_cells, points):
     """(m,) the owned cell holding each of ``points`` (m, 3), or -1: of the cells whose centres lie
@@ -108,34 +122,22 @@ def holding_cells(vertex_xyz, cell_vertices, faces, centers, reach, bin_lower, b
     first (it holds the point on regular meshes), then the others in bin order, so a point on a
     shared face goes to the first that holds it."""
     found = np.full(len(points), -1, np.int64)
-    nz, ny = bin_counts[2], bin_counts[1]
     reach2 = reach * reach
     for i in range(len(points)):
         point = points[i]
-        lo, hi = bin_box(point, reach, bin_lower, bin_width, bin_counts)
+        bins = bins_within(point, reach, bin_lower, bin_width, bin_counts)
         nearest, nearest2 = -1, np.inf
-        for bx in range(lo[0], hi[0] + 1):
-            for by in range(lo[1], hi[1] + 1):
-                for bz in range(lo[2], hi[2] + 1):
-                    b = (bx * ny + by) * nz + bz
-                    for s in range(bin_start[b], bin_start[b + 1]):
-                        c = bin_cells[s]
-                        d2 = distance2(point, centers, c)
-                        if d2 <= reach2 and d2 < nearest2:
-                            nearest, nearest2 = c, d2
-        if nearest < 0:
-            continue
-        if holds(vertex_xyz, cell_vertices, faces, nearest, point):
+        for b in bins:
+            for c in bin_cells[bin_start[b]:bin_start[b + 1]]:
+                d2 = distance2(point, centers, c)
+                if d2 <= reach2 and d2 < nearest2:
+                    nearest, nearest2 = c, d2
+        if nearest < 0 or holds(vertex_xyz, cell_vertices, faces, nearest, point):
             found[i] = nearest
             continue
-        for bx in range(lo[0], hi[0] + 1):
-            for by in range(lo[1], hi[1] + 1):
-                for bz in range(lo[2], hi[2] + 1):
-                    b = (bx * ny + by) * nz + bz
-                    for s in range(bin_start[b], bin_start[b + 1]):
-                        c = bin_cells[s]
-                        if found[i] >= 0 or c == nearest:
-                            continue
-                        if distance2(point, centers, c) <= reach2 and holds(vertex_xyz, cell_vertices, faces, c, point):
-                            found[i] = c
+        for b in bins:
+            for c in bin_cells[bin_start[b]:bin_start[b + 1]]:
+                if found[i] < 0 and c != nearest and distance2(point, centers, c) <= reach2 and \
+                        holds(vertex_xyz, cell_vertices, faces, c, point):
+                    found[i] = c
     return found

@@ -1,5 +1,5 @@
-"""Stage 8 where ranks own particles (runs without a flow, several ranks): particles that left the
-domain are removed and those whose centre entered another rank's box migrate to it
+"""Stage 8: particles that left the domain are removed; where ranks own particles (runs without a
+flow, several ranks), those whose centre entered another rank's box migrate to it
 (ARCHITECTURE.md, "Particles"; ``pmpm.ownership`` holds the boxes and the exchanges).
 """
 from __future__ import annotations
@@ -14,6 +14,42 @@ from .errors import NumericalError
 from .ownership import IMBALANCE, bisect, exchange_groups, particle_rows, particles_of
 from .particles import ParticleState
 from .state import RunState
+
+
+def remove_outside(model, state: RunState, start: np.ndarray) -> RunState:
+    """Collective. Where every rank holds every particle: particles whose centre left the domain
+    (``model.mesh``) are removed (counted in ``removed``, and in ``removed_through`` by the boundary
+    each crossed on its way from ``start``, (n, 3) the positions the step started from, rows as the
+    particles'; ``model.exits``: ``pmpm.exits.ExitFaces``)."""
+    if len(state.particles) == 0:
+        return state
+    outside = ~model.mesh.inside_domain(state.particles.x)
+    if not outside.any():
+        return state
+    removed_through = state.removed_through
+    if model.exits is not None:
+        removed_through = model.exits.count(start[outside], state.particles.x[outside], removed_through)
+    return replace(state, particles=state.particles.without(outside), removed=state.removed + int(outside.sum()),
+                   removed_through=removed_through, hydro_force=state.hydro_force[~outside],
+                   hydro_torque=state.hydro_torque[~outside])
+
+
+def first_not_finite(particles: ParticleState) -> int:
+    """The id of the first particle whose position or velocity is not finite, or −1."""
+    bad = ~np.isfinite(particles.x).all(axis=1) | ~np.isfinite(particles.v).all(axis=1)
+    return int(particles.id[np.argmax(bad)]) if bad.any() else -1
+
+
+def not_finite(pid: int, step: int, time: float) -> NumericalError:
+    return NumericalError(f"step {step}, t = {time:.6g} s: particle {pid} has a non-finite position or velocity; "
+                          "reduce [run] dt")
+
+
+def check_finite(particles: ParticleState, step: int, time: float) -> None:
+    """Raise NumericalError naming the first particle whose state is not finite."""
+    pid = first_not_finite(particles)
+    if pid >= 0:
+        raise not_finite(pid, step, time)
 
 
 def exit_triangles(case, mesh) -> tuple:
@@ -72,15 +108,12 @@ def migrate_particles(comm, exits: tuple, exit_faces, state: RunState, start: np
                if exit_faces is not None and outside.any() else {})
     particles = state.particles.without(outside)
     force, torque = state.hydro_force[~outside], state.hydro_torque[~outside]
-    bad = ~np.isfinite(particles.x).all(axis=1) | ~np.isfinite(particles.v).all(axis=1)
     owner = partition.owner_of(particles.x)
     gathered = comm.allgather(((len(particles), int((owner != comm.rank).sum()), int(outside.sum()),
-                                int(particles.id[np.argmax(bad)]) if bad.any() else -1), through))
+                                first_not_finite(particles)), through))
     counts = np.array([rank_counts for rank_counts, _ in gathered])
     if (counts[:, 3] >= 0).any():
-        pid = int(counts[np.argmax(counts[:, 3] >= 0), 3])
-        raise NumericalError(f"step {state.step + 1}, t = {state.time + dt:.6g} s: particle {pid} has a non-finite "
-                             "position or velocity; reduce [run] dt")
+        raise not_finite(int(counts[np.argmax(counts[:, 3] >= 0), 3]), state.step + 1, state.time + dt)
     removed_through = dict(state.removed_through)
     for _, rank_through in gathered:
         for name, n in rank_through.items():

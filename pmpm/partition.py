@@ -42,13 +42,12 @@ def coordinate_bisection(centres: np.ndarray, parts: int, work_at: np.ndarray | 
         cut = int(round(len(points) * left / count))
         along = centres[points]
         extents = along.max(axis=0, initial=-np.inf) - along.min(axis=0, initial=np.inf)
-        best = None
+        best, share, total = None, work[loads], work[loads].sum()
         for axis in np.argsort(-extents, kind="stable"):
             order = points[np.lexsort((points, along[:, axis]))]
             plane = centres[order[cut], axis] if cut < len(order) else np.inf
             on_left = work_at[loads, axis] < plane
-            total = work[loads].sum()
-            unfair = abs(work[loads][on_left].sum() / total - left / count) if total > 0 else 0.0
+            unfair = abs(share[on_left].sum() / total - left / count) if total > 0 else 0.0
             if best is None or unfair < best[0]:
                 best = (unfair, order, on_left)
             if unfair <= WORK_TOLERANCE:

@@ -30,7 +30,7 @@ from .forces import field_forces_of_case, gravity_buoyancy
 from .injection import Injector, NewParticles, build_injectors, initial_particles
 from .placement import place_releases
 from .mesh import Mesh
-from .migration import exit_triangles as exit_triangles_of, migrate_particles
+from .migration import check_finite, exit_triangles as exit_triangles_of, migrate_particles, remove_outside
 from .ownership import bisect, gather
 from .parallel import agree, allreduce_sum, print0
 from .particles import FIXED, ParticleState, accelerate
@@ -345,32 +345,6 @@ def move_particles(model: Model, state: RunState, force: np.ndarray, torque: np.
             free = particles.motion != FIXED
             particles.x[free] += particles.v[free] * dt / substeps
     return replace(state, particles=particles, walls=walls, contacts=contacts, collision_totals=totals)
-
-
-def remove_outside(model: Model, state: RunState, start: np.ndarray) -> RunState:
-    """Collective. Particles whose centre left the domain are removed (counted in ``removed``, and
-    in ``removed_through`` by the boundary each crossed on its way from ``start``, (n, 3) the
-    positions the step started from, rows as the particles'; ``pmpm.exits``)."""
-    if len(state.particles) == 0:
-        return state
-    outside = ~model.mesh.inside_domain(state.particles.x)
-    if not outside.any():
-        return state
-    removed_through = state.removed_through
-    if model.exits is not None:
-        removed_through = model.exits.count(start[outside], state.particles.x[outside], removed_through)
-    return replace(state, particles=state.particles.without(outside), removed=state.removed + int(outside.sum()),
-                   removed_through=removed_through, hydro_force=state.hydro_force[~outside],
-                   hydro_torque=state.hydro_torque[~outside])
-
-
-def check_finite(particles: ParticleState, step: int, time: float) -> None:
-    """Raise NumericalError naming the first particle whose state is not finite."""
-    bad = ~np.isfinite(particles.x).all(axis=1) | ~np.isfinite(particles.v).all(axis=1)
-    if bad.any():
-        pid = int(particles.id[np.argmax(bad)])
-        raise NumericalError(f"step {step}, t = {time:.6g} s: particle {pid} has a non-finite position or "
-                             "velocity; reduce [run] dt")
 
 
 # ----------------------------------------------------------------------------------------------
