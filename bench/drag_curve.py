@@ -8,6 +8,8 @@ drag_curve.png and prints the table.
     .venv/bin/python bench/drag_curve.py --box-check                   # + the box's effect (4 cells/d)
     .venv/bin/python bench/drag_curve.py --reynolds 100 --keep bench/results/drag_curve.csv   # redo some
     mpirun -n 2 .venv/bin/python bench/drag_curve.py --cells 8         # any run on several ranks
+    .venv/bin/python bench/drag_curve.py --correction di_felice --output bench/results/drag_curve_di_felice
+                                                                       # with the drag correction
 
 The case is tests/test_coupling.py's ``stream_run``: a sphere held off the lattice in a box 8
 diameters wide, 4 upstream and 6 downstream of it, Oseen's flow (with the standard curve's drag) on
@@ -16,6 +18,8 @@ forcing, linear-upwind convection; dt the smaller of CFL 0.5 (0.25 from Re 300: 
 at cell Reynolds numbers ≫ 1) and ν dt/h² = 0.4; the drag averaged over the last quarter of 8 d/U
 (24 d/U from Re 100; 2 d²/ν at low Re, where the flow is steady within a viscous time). ``--box-check`` repeats the 4
 cells-per-diameter runs in a box 12 d wide, 6 up- and 9 downstream, and prints the ratio.
+``--correction`` switches on the drag correction for under-resolved particles; the table then also
+gives the error against the correlation's own drag of a lone sphere (ε = 1).
 """
 import argparse
 import csv
@@ -31,6 +35,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests"))
 from test_coupling import stream_run  # noqa: E402  (the validation case, not a copy)
 from pmpm.errors import NumericalError  # noqa: E402
+from pmpm.coupling.correction import CORRELATIONS  # noqa: E402
 from pmpm.reference import standard_drag_coefficient  # noqa: E402
 
 REYNOLDS = (0.1, 1.0, 10.0, 30.0, 100.0, 300.0, 1000.0)
@@ -39,7 +44,7 @@ BOX, BIG_BOX = (8.0, 4.0, 6.0), (12.0, 6.0, 9.0)
 DIAMETER, SPEED, DENSITY = 0.02, 0.1, 1000.0
 
 
-def run(comm, reynolds, cells, box, forcing):
+def run(comm, reynolds, cells, box, forcing, correction="off"):
     folder = Path(comm.bcast(tempfile.mkdtemp() if comm.rank == 0 else None))
     viscosity = DENSITY * SPEED * DIAMETER / reynolds
     start = time.perf_counter()
@@ -47,7 +52,7 @@ def run(comm, reynolds, cells, box, forcing):
     # Re 300 it is unsteady: average over the last 6 d/U of 24
     result = stream_run(comm, folder, SPEED, cells, DENSITY, viscosity, diameter=DIAMETER, box=box,
                         cfl=0.25 if reynolds >= 300 else 0.5, flow_times=24.0 if reynolds >= 100 else 8.0,
-                        forcing=forcing)
+                        forcing=forcing, correction=correction)
     return result, time.perf_counter() - start
 
 
@@ -57,6 +62,7 @@ def main():
     parser.add_argument("--reynolds", default=",".join(map(str, REYNOLDS)), help="Reynolds numbers, comma-separated")
     parser.add_argument("--box-check", action="store_true", help="also the 4 cells/d runs in a 1.5× larger box")
     parser.add_argument("--forcing", default="penalty", choices=("penalty", "patch"))
+    parser.add_argument("--correction", default="off", choices=("off", *CORRELATIONS))
     parser.add_argument("--output", default=str(ROOT / "bench" / "results" / "drag_curve"),
                         help="CSV and PNG path without suffix")
     parser.add_argument("--keep", default=None,
@@ -69,7 +75,7 @@ def main():
     for cpd in cells:
         for reynolds in numbers:
             try:
-                result, seconds = run(comm, reynolds, cpd, BOX, args.forcing)
+                result, seconds = run(comm, reynolds, cpd, BOX, args.forcing, args.correction)
             except NumericalError as failure:     # the explicit convection at high cell Re: say so, go on
                 if comm.rank == 0:
                     print(f"Re {reynolds:7.1f}, {cpd} cells/d: failed: {failure}", flush=True)
@@ -77,18 +83,23 @@ def main():
                                  note=str(failure)[:120]))
                 continue
             standard = float(standard_drag_coefficient(reynolds))
-            row = dict(reynolds=reynolds, cells_per_diameter=cpd, forcing=args.forcing,
+            row = dict(reynolds=reynolds, cells_per_diameter=cpd, forcing=args.forcing, correction=args.correction,
                        drag_coefficient=round(result["drag_coefficient"], 5), standard=round(standard, 5),
                        error=round(result["drag_coefficient"] / standard - 1, 4),
                        inside=round(result["inside"], 5), centre_inside=round(result["centre_inside"], 4),
                        diffusion_number=round(result["diffusion_number"], 4), steps=result["steps"],
                        ranks=comm.size, wall_seconds=round(seconds, 1))
+            if args.correction != "off":   # the correlation's lone sphere: C_D = 24 F/Re
+                alone = 24.0 * float(CORRELATIONS[args.correction](0.0, reynolds)) / reynolds
+                row["correlation_error"] = round(result["drag_coefficient"] / alone - 1, 4)
             if args.box_check and cpd == 4:
-                big, _ = run(comm, reynolds, cpd, BIG_BOX, args.forcing)
+                big, _ = run(comm, reynolds, cpd, BIG_BOX, args.forcing, args.correction)
                 row["larger_box_ratio"] = round(big["drag_coefficient"] / result["drag_coefficient"], 4)
             rows.append(row)
             if comm.rank == 0:
                 extra = f", 1.5× box: ×{row['larger_box_ratio']:.3f}" if "larger_box_ratio" in row else ""
+                if "correlation_error" in row:
+                    extra += f", against {args.correction} alone {100 * row['correlation_error']:+6.1f} %"
                 print(f"Re {reynolds:7.1f}, {cpd} cells/d: C_D {row['drag_coefficient']:9.4f}, standard {standard:9.4f}, "
                       f"error {100 * row['error']:+6.1f} %; inside ≤ {100 * row['inside']:.2f} % of U, centres inside "
                       f"{100 * row['centre_inside']:.1f} %{extra}; {row['steps']} steps, {seconds:.1f} s on "
@@ -101,7 +112,7 @@ def main():
             kept = [{k: v for k, v in r.items() if v != ""} for r in csv.DictReader(f)]
         for r in kept:
             for key in ("reynolds", "drag_coefficient", "standard", "error", "inside", "centre_inside",
-                        "diffusion_number", "wall_seconds", "larger_box_ratio"):
+                        "diffusion_number", "wall_seconds", "larger_box_ratio", "correlation_error"):
                 if key in r:
                     r[key] = float(r[key])
             r["cells_per_diameter"] = int(r["cells_per_diameter"])
@@ -131,7 +142,8 @@ def main():
     right.axhline(0, color="k", linewidth=0.8)
     right.set_xscale("log"); right.set_xlabel("Re"); right.set_ylabel("drag / standard − 1 (%)")
     right.legend(fontsize=7)
-    fig.suptitle(f"fixed sphere, {args.forcing} forcing, sub-cell volume fractions", fontsize=9)
+    corrected = "" if args.correction == "off" else f", drag correction {args.correction}"
+    fig.suptitle(f"fixed sphere, {args.forcing} forcing, sub-cell volume fractions{corrected}", fontsize=9)
     fig.tight_layout(); fig.savefig(out.with_suffix(".png"), dpi=120)
     print(f"wrote {out.with_suffix('.csv')} and {out.with_suffix('.png')}")
 

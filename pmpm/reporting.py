@@ -96,7 +96,8 @@ def warn_outside_validation(model, state, boundary_speed: float) -> None:
     """Collective. Warn where particles are resolved more coarsely, or may meet the flow at a higher
     Reynolds number, than the coupling was validated for (bench/drag_curve.py, docs/coupling.md):
     fewer than 3 cells per diameter; Re above 1000; Re above (d/h)², where the boundary layer, about
-    d/√Re thick, is thinner than a cell and the drag comes out too high. The relative speed is
+    d/√Re thick, is thinner than a cell and the drag comes out too high (unless the drag correction,
+    which takes that excess off, is on). The relative speed is
     bounded by the boundary velocities, the particles' own and their settling speed in still fluid
     (Schiller–Naumann)."""
     from .reference import terminal_velocity
@@ -132,10 +133,11 @@ def warn_outside_validation(model, state, boundary_speed: float) -> None:
     if reynolds.max() > 1000:
         warn(comm, f"particles may meet the flow at Re ≈ {reynolds.max():.3g} (boundary, particle and settling speeds): "
                    "the drag is validated up to Re 1000 (docs/coupling.md)")
-    elif reynolds[worst] > resolution[worst] ** 2:
+    elif reynolds[worst] > resolution[worst] ** 2 and model.case.coupling.drag_correction == "off":
         warn(comm, f"particles may meet the flow at Re ≈ {reynolds[worst]:.3g} on {resolution[worst]:.2g} cells per "
                    "diameter: above Re = (d/h)² the boundary layer (≈ d/√Re) is thinner than a cell and the drag "
-                   "comes out too high (docs/coupling.md: its error by Re and resolution)")
+                   "comes out too high (docs/coupling.md: its error by Re and resolution); [coupling] "
+                   "drag_correction = \"di_felice\" takes the excess off")
 
 
 def warn_once(comm, message: str) -> None:

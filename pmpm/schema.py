@@ -104,9 +104,10 @@ SCHEMA: dict[str, tuple[Key, ...]] = {
             help="implicit: stable for light particles (measured to ρp/ρf = 0.3); explicit: the paper's, "
                  "rings below ρp/ρf ≈ 0.5–1.2 (docs/coupling.md)"),
         Key("drag_correction", "str", "off", choices=("off", "di_felice", "beetstra"),
-            help="dense beds on a few cells per diameter: raise the particles' drag to Di Felice's (1994) or "
-                 "Beetstra et al.'s (2007) correlation at the local voidage where the resolved drag falls short "
-                 "(penalty forcing, two-way; docs/coupling.md, \"Dense suspensions\")"),
+            help="particles on a few cells per diameter: bring their drag to Di Felice's (1994) or Beetstra et "
+                 "al.'s (2007) correlation at the local voidage, raising it where the resolved drag falls short "
+                 "(dense beds) and taking off the excess above Re = (d/h)², where the boundary layer is thinner "
+                 "than a cell (penalty forcing, two-way; docs/coupling.md, \"Dense suspensions\")"),
         Key("correction_filter", "float", None, ">0", unit="m",
             help="drag_correction: the width of the box over which each particle's voidage and slip are averaged "
                  "(default: 3 × the largest particle diameter of the case)"),

@@ -26,9 +26,18 @@ resolved drag lacks:
   in the cells has not slowed yet): with g = 1 and 0.5 the rate swung between 0 and its cap from
   step to step; with 0.1 a packed bed settles within about 30 steps.
 
-Where the resolved drag already reaches the correlation's (an isolated sphere; a bed at Re ≳ 100
-from 4 cells per diameter, where the coarse mesh's drag is too high) the correction adds nothing:
-κ_x stays 0. It never lowers a drag.
+Where the resolved drag exceeds the correlation's because the mesh is too coarse for the particle's
+boundary layer (≈ d/√Re, thinner than a cell above Re = (d/h)²: the drag comes out too high,
+docs/coupling.md), κ_x falls to 0 and a *relief* takes over: each such particle is pushed against
+its slip by β w F_c (F_c its correlation's force at the end of the last step), and the same force
+is put into the fluid around it, in the cells outside every particle's control volume, as an
+explicit source of the momentum equations; momentum stays conserved. w = clip(Re/(d/h)² − 1, 0, 1)
+(``relievable``) limits it to those particles: below (d/h)² a lone sphere's resolved drag is right,
+and its filtered slip, slowed by its own disturbance across the filter box, is not the stream's (at
+Re 0.1 a relief took 20 % off a drag that was within 3 %). β is the pool's, from the same
+controller over the relievable particles: β ← clip(β − g ε̄ Σ w (F_c − F·ŝ)/Σ w F_c, 0,
+``RELIEF_CAP``). The relief lags the slip by a step and offsets only the excess of the resolved
+drag (β w F_c < F), so the resolved drag's implicit hold on the particle still dominates.
 """
 from __future__ import annotations
 
@@ -40,6 +49,7 @@ from ..reference import beetstra_drag_factor, di_felice_drag_factor
 CORRELATIONS = {"beetstra": beetstra_drag_factor, "di_felice": di_felice_drag_factor}
 RATE_CAP = 1e3    # κ_x dt at most: the cells near the particle move with it to 1e-3
 GAIN = 0.1        # of the one-step gain ε: the force felt responds to κ_x more than S foresees
+RELIEF_CAP = 2.0  # β at most: the coarsest mesh's drag at Re 1000 is about twice the correlation's
 
 
 class FilterBins:
@@ -119,6 +129,17 @@ class DragCorrection:
             return np.zeros(len(state))
         return memory.correction_rate[self.bins.pool_of(state.x)]
 
+    def relief(self, state, memory) -> np.ndarray | None:
+        """(n, 3) the relief force on each particle (N): −β F_c, its pool's β and its correlation's
+        force at the end of the last step (0 for a particle new to the flow); None where no pool relieves."""
+        if memory.correction_relief is None or not memory.correction_relief.any():
+            return None
+        known_ids = memory.under_id
+        position = np.minimum(np.searchsorted(known_ids, state.id), max(len(known_ids) - 1, 0))
+        same = (known_ids[position] == state.id) if len(known_ids) else np.zeros(len(state), bool)
+        beta = memory.correction_relief[self.bins.pool_of(state.x)]
+        return np.where(same[:, None], -beta[:, None] * memory.under_target[position], 0.0)
+
     def slip(self, state, u: np.ndarray, alpha: np.ndarray, solid_velocity: np.ndarray, v: np.ndarray):
         """Collective. Each particle's local voidage ε (n,) and superficial slip U_s = ε (u_f − v) (n, 3),
         ``v`` (n, 3) its velocity (``FilterBins.block_averages`` for the rest)."""
@@ -127,24 +148,29 @@ class DragCorrection:
         eps = np.clip(voidage[where], 0.3, 1.0)    # below a random close packing's voidage the filter is too coarse
         return eps, superficial[where] - eps[:, None] * v
 
-    def target(self, state, eps: np.ndarray, superficial: np.ndarray):
-        """The correlation's force on each particle along its slip, (n,) N, and the slip's direction (n, 3)."""
+    def target(self, state, eps: np.ndarray, superficial: np.ndarray, h: np.ndarray):
+        """The correlation's force on each particle along its slip, (n,) N, the slip's direction
+        (n, 3), and how far the relief may act on it (n,), w = clip(Re/(d/h)² − 1, 0, 1), ``h`` (n,)
+        the size of its cells (m)."""
         speed = np.linalg.norm(superficial, axis=1)
         d = 2.0 * state.radius
         reynolds = self.rho * speed * d / self.mu
         force = 3 * np.pi * self.mu * d * speed * self.factor(1.0 - eps, reynolds) / eps
         direction = superficial / np.maximum(speed, np.finfo(float).tiny)[:, None]
-        return force, direction
+        relievable = np.clip(reynolds * (h / d) ** 2 - 1.0, 0.0, 1.0)
+        return force, direction, relievable
 
-    def update(self, state, rate: np.ndarray, eps: np.ndarray, target: np.ndarray, direction: np.ndarray,
-               force: np.ndarray, sensitivity: np.ndarray, dt: float) -> np.ndarray:
-        """(n_pools,) κ_x of each pool for the next step (``rate``: this step's): raised by
-        g ε̄ (Σ F_c − Σ F·ŝ)/Σ S where the drag the pool's particles felt, ``force`` (n, 3) along their
-        slips ``direction`` (n, 3), falls short of their correlation's ``target`` (n,), lowered where
-        it exceeds it, never below 0. ``sensitivity`` S (n,): a particle's force along ŝ per unit κ_x
-        (N s); ``eps`` (n,) each particle's filtered voidage, ε̄ their mean in the pool; g = ``GAIN``.
-        The pool's mean drag is the correlation's (what a bed's pressure drop measures); how it is
-        shared among the particles, by their own flow, is resolved."""
+    def update(self, state, rate: np.ndarray, relief: np.ndarray, eps: np.ndarray, target: np.ndarray,
+               direction: np.ndarray, relievable: np.ndarray, force: np.ndarray, sensitivity: np.ndarray, dt: float):
+        """(κ_x, β), each (n_pools,), of each pool for the next step (``rate``, ``relief``: this step's).
+        D = Σ F_c − Σ F·ŝ, where the drag the pool's particles felt, ``force`` (n, 3) along their slips
+        ``direction`` (n, 3), falls short of their correlation's ``target`` (n,) (D > 0) or exceeds it:
+        κ_x moves by g ε̄ D/Σ S, never below 0; once it is 0, β moves by −g ε̄ D_w/Σ w F_c, never below
+        0, D_w = Σ w (F_c − F·ŝ) over the particles weighted by ``relievable`` w (n,).
+        ``sensitivity`` S (n,): a particle's force along ŝ per unit κ_x (N s); ``eps`` (n,) each
+        particle's filtered voidage, ε̄ their mean in the pool; g = ``GAIN``. The pool's mean drag is
+        the correlation's (what a bed's pressure drop measures); how it is shared among the
+        particles, by their own flow, is resolved."""
         n_bins = self.bins.n_pools
         where = self.bins.pool_of(state.x)
         count = np.bincount(where, minlength=n_bins)
@@ -153,6 +179,12 @@ class DragCorrection:
         deficit = np.bincount(where, target - felt, minlength=n_bins)
         response = np.bincount(where, sensitivity, minlength=n_bins)
         scale = np.bincount(where, target, minlength=n_bins)
-        usable = response > 1e-12 * np.maximum(scale, np.finfo(float).tiny)
+        tiny = np.finfo(float).tiny
+        usable = response > 1e-12 * np.maximum(scale, tiny)
         step = np.where(usable, GAIN * voidage * deficit / np.where(usable, response, 1.0), 0.0)
-        return np.clip(rate + step, 0.0, RATE_CAP / dt)
+        excess = np.bincount(where, relievable * (target - felt), minlength=n_bins)
+        relieved = np.bincount(where, relievable * target, minlength=n_bins)
+        relieving = (rate <= 0.0) & ((relief > 0.0) | (excess < 0.0)) & (relieved > 0.0)
+        new_relief = np.where(relieving, relief - GAIN * voidage * excess / np.maximum(relieved, tiny), relief)
+        new_rate = np.where(relieving, rate, rate + step)
+        return np.clip(new_rate, 0.0, RATE_CAP / dt), np.clip(new_relief, 0.0, RELIEF_CAP)

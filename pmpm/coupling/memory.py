@@ -20,6 +20,10 @@ class CouplingMemory:
         velocity change (n, 3) m/s and how many steps in a row it flipped sign and grew (n,)
     correction_rate : the drag correction's extra rate κ_x (1/s) of each pool of particles
         (n_pools,), for the next step
+    correction_relief : its relief β of each pool (n_pools,), for the next step: the share of the
+        correlation's force taken off particles whose resolved drag exceeds it
+    under_target : the correlation's force on each particle (m, 3) N at the end of the last step,
+        by id as ``under_id``
     """
 
     known_id: int = -1
@@ -29,11 +33,14 @@ class CouplingMemory:
     last_change: np.ndarray | None = None
     ringing: np.ndarray | None = None
     correction_rate: np.ndarray | None = None
+    correction_relief: np.ndarray | None = None
+    under_target: np.ndarray | None = None
 
     def to_arrays(self) -> dict:
         """The arrays to store (absent parts left out)."""
         arrays = {"known_id": np.array(self.known_id, np.int64)}
-        for name in ("under_id", "under_momentum", "under_centre", "last_change", "ringing", "correction_rate"):
+        for name in ("under_id", "under_momentum", "under_centre", "last_change", "ringing", "correction_rate",
+                     "correction_relief", "under_target"):
             if getattr(self, name) is not None:
                 arrays[name] = getattr(self, name)
         return arrays
@@ -47,4 +54,4 @@ class CouplingMemory:
             return values if columns is None else values.reshape(-1, columns)
         return cls(int(arrays["known_id"]), get("under_id", np.int64), get("under_momentum", float, 6),
                    get("under_centre", float, 3), get("last_change", float, 3), get("ringing", np.int64),
-                   get("correction_rate", float))
+                   get("correction_rate", float), get("correction_relief", float), get("under_target", float, 3))

@@ -15,8 +15,9 @@ projected u, plus the change ΔP of the momentum of the fluid under it, over a c
 the particle's new motion, damped by the cells' own response so that light particles converge
 (``after_solve``); after the projection the step's impulse gives its velocities, drag and torque
 (``after_projection``). With ``drag_correction`` (``correction.py``) an extra rate κ_x acts on
-the fluid share of each particle's cells, and ``corrected_rates`` sets the next step's from the
-drag the particles felt. docs/coupling.md has the method's measurements.
+the fluid share of each particle's cells, or a relief force pushes particles whose resolved drag is
+too high against their slip and the fluid around them along it (``relief``); ``corrected_rates``
+sets the next step's from the drag the particles felt. docs/coupling.md has the method's measurements.
 """
 from __future__ import annotations
 
@@ -62,6 +63,9 @@ class PenaltyPasses:
     guess_v, guess_omega : (n, 3) the motion the next solve drives the fluid towards
     solved_v, solved_omega : (n, 3) the motion the last solve drove it towards
     exchanged : (n, 6) J of the last solve
+    relief : (n, 3) the drag correction's relief force on each particle (N), or None
+    relief_source : (n_owned, 3) the same force put into the fluid around the particles (N/ρ per cell),
+        or None
     """
 
     touched: Touched
@@ -78,6 +82,8 @@ class PenaltyPasses:
     solved_v: np.ndarray | None = None
     solved_omega: np.ndarray | None = None
     exchanged: np.ndarray | None = None
+    relief: np.ndarray | None = None
+    relief_source: np.ndarray | None = None
 
 
 class PenaltyForcing:
@@ -151,8 +157,32 @@ class PenaltyForcing:
             # its moment about where the centre is now: L' = L − (x' − x) × P
             start[:, 3:] -= np.cross(state.x[same] - centre[position[same]], start[:, :3])
             internal_start[same] = start
+        relief = relief_source = None
+        if self.correction is not None:
+            relief, relief_source = self.relief(state, touched, memory)
         return PenaltyPasses(touched, offset, kappa, under_mass, under_scale, internal_start, volume * rate, response,
-                             response_spin, state.v, state.omega), fluid
+                             response_spin, state.v, state.omega, relief=relief, relief_source=relief_source), fluid
+
+    def relief(self, state: ParticleState, touched: Touched, memory: CouplingMemory):
+        """Collective. The drag correction's relief (``correction.py``): the force on each particle
+        (n, 3) N, and the opposite force on the fluid around it, (n_owned, 3) per cell (divided by ρ,
+        as the momentum equations' right-hand sides), shared among the particle's cells by their
+        volume outside every particle's control volume, so that the fluid under a particle, whose
+        change the particle takes, does not hand it back. A particle with no such cell takes none.
+        (None, None) where no pool relieves."""
+        relief = self.correction.relief(state, memory)
+        if relief is None:
+            return None, None
+        n_owned = self.mesh.n_owned_cells
+        p, c = touched.particle, touched.cell
+        under = np.bincount(c, touched.smooth, minlength=n_owned)[c]
+        outside = self.mesh.cell_volume[c] * np.maximum(1.0 - under, 0.0)
+        total = np.bincount(p, outside, minlength=len(state))
+        if self.comm.size > 1:
+            self.comm.Allreduce(MPI.IN_PLACE, total, op=MPI.SUM)
+        relief = np.where((total > 0.0)[:, None], relief, 0.0)
+        share = outside / np.where(total > 0.0, total, 1.0)[p]
+        return relief, sum_rows(c, -share[:, None] * relief[p] / self.rho, n_owned)
 
     def penalty_rates(self, touched: Touched, speed: np.ndarray) -> np.ndarray:
         """κ (1/s) of each (particle, cell) pair, from the cell's total volume fraction α, shared among
@@ -178,8 +208,10 @@ class PenaltyForcing:
         if not self.two_way:
             return None, None
         touched = passes.touched
-        return cell_targets(self.mesh.n_owned_cells, touched.particle, touched.cell, passes.offset,
-                            self.mesh.cell_volume[touched.cell] * passes.kappa, passes.guess_v, passes.guess_omega)
+        diagonal, target = cell_targets(self.mesh.n_owned_cells, touched.particle, touched.cell, passes.offset,
+                                        self.mesh.cell_volume[touched.cell] * passes.kappa, passes.guess_v,
+                                        passes.guess_omega)
+        return diagonal, target if passes.relief_source is None else target + passes.relief_source
 
     def after_solve(self, state: ParticleState, passes: PenaltyPasses, u_star: np.ndarray, external: External,
                     dt: float) -> tuple[np.ndarray, None, PenaltyPasses]:
@@ -197,7 +229,7 @@ class PenaltyForcing:
         passes = replace(passes, solved_v=passes.guess_v, solved_omega=passes.guess_omega, exchanged=exchanged)
         if self.explicit:
             return u_star, None, passes
-        impulse = exchanged + internal - passes.internal_start   # J + ΔP
+        impulse = with_relief(exchanged + internal - passes.internal_start, passes.relief, dt)   # J + ΔP
         v, omega = damped_guess(state, external, impulse, dt, passes.response, passes.response_spin,
                                 passes.solved_v, passes.solved_omega)
         return u_star, None, replace(passes, guess_v=v, guess_omega=omega)
@@ -219,7 +251,7 @@ class PenaltyForcing:
         else:
             internal_end = self.fluid_under(state, passes.touched, passes.offset, fluid.u, passes.under_mass)[0]
         order = np.argsort(state.id)
-        impulse = exchanged + internal_end - passes.internal_start
+        impulse = with_relief(exchanged + internal_end - passes.internal_start, passes.relief, dt)
         m, inertia = state.mass, state.inertia
         exact = np.full(n, self.explicit) | (m >= passes.response)
         exact_spin = np.full(n, self.explicit) | (inertia >= passes.response_spin)
@@ -232,7 +264,8 @@ class PenaltyForcing:
                          under_centre=state.x[order])
         if self.correction is not None:
             v = np.where(state.movable[:, None], state.v + dv, state.v)
-            memory = replace(memory, correction_rate=self.corrected_rates(state, passes, fluid.u, v, force, dt, memory))
+            rate, relief, target = self.corrected_rates(state, passes, fluid.u, v, force, dt, memory)
+            memory = replace(memory, correction_rate=rate, correction_relief=relief, under_target=target[order])
         if self.explicit:
             last_change, ringing = watch_ringing(state, np.where(state.movable[:, None], dv, 0.0), memory.last_change,
                                                  memory.ringing, self.rho, step, time)
@@ -240,29 +273,38 @@ class PenaltyForcing:
         return Exchange(fluid, force, torque, memory)
 
     def corrected_rates(self, state: ParticleState, passes: PenaltyPasses, u: np.ndarray, v: np.ndarray,
-                        force: np.ndarray, dt: float, memory: CouplingMemory) -> np.ndarray:
-        """Collective. The drag correction's κ_x per pool of particles (n_pools,) for the next step,
-        from the correlation's force at the local voidage and slip (particle velocities ``v`` (n, 3)
-        at the step's end, flow ``u``), the drag ``force`` (n, 3) felt this step, and the force per
-        unit κ_x in the particle's cells: the fluid share (1 − α) of each, its velocity relative to
-        the particle, damped by the cell's own implicit response 1/(1 + κ dt)."""
+                        force: np.ndarray, dt: float, memory: CouplingMemory):
+        """Collective. The drag correction's κ_x and relief β per pool of particles (n_pools,) for the
+        next step, and the correlation's force on each particle (n, 3) N, from the correlation at the
+        local voidage and slip (particle velocities ``v`` (n, 3) at the step's end, flow ``u``), the
+        drag ``force`` (n, 3) felt this step, and the force per unit κ_x in the particle's cells: the
+        fluid share (1 − α) of each, its velocity relative to the particle, damped by the cell's own
+        implicit response 1/(1 + κ dt)."""
         touched, n_owned = passes.touched, self.mesh.n_owned_cells
         p, c = touched.particle, touched.cell
         alpha = alpha_per_cell(touched, n_owned)
         rigid = passes.solved_v[p] + cross(passes.solved_omega[p], passes.offset)
         solid = sum_rows(c, touched.alpha[:, None] * rigid, n_owned)
         eps, superficial = self.correction.slip(state, u, alpha, solid, v)
-        target, direction = self.correction.target(state, eps, superficial)
-        target *= np.minimum(1.0, 1.0 / passes.under_scale)    # the share of a sphere cut by a symmetry plane
         kappa_cell = np.bincount(c, passes.kappa, minlength=n_owned)[c]
-        along = np.einsum("ij,ij->i", u[c] - rigid, direction[p])
+        along = np.einsum("ij,ij->i", u[c] - rigid, superficial[p])
         share = self.rho * self.mesh.cell_volume[c] * (1.0 - np.minimum(alpha[c], 1.0)) * along / (1 + kappa_cell * dt)
-        sensitivity = np.bincount(p, share, minlength=len(state))
+        sums = np.zeros((3, len(state)))   # the sensitivity along U_s, and the particle's cell size (α-weighted)
+        sums[0] = np.bincount(p, share, minlength=len(state))
+        sums[1] = np.bincount(p, touched.alpha * self.locator.h[c], minlength=len(state))
+        sums[2] = np.bincount(p, touched.alpha, minlength=len(state))
         if self.comm.size > 1:
-            self.comm.Allreduce(MPI.IN_PLACE, sensitivity, op=MPI.SUM)
-        rate = memory.correction_rate
-        rate = np.zeros(self.correction.bins.n_pools) if rate is None else rate
-        return self.correction.update(state, rate, eps, target, direction, force, sensitivity, dt)
+            self.comm.Allreduce(MPI.IN_PLACE, sums, op=MPI.SUM)
+        h = sums[1] / np.maximum(sums[2], np.finfo(float).tiny)
+        target, direction, relievable = self.correction.target(state, eps, superficial, h)
+        target *= np.minimum(1.0, 1.0 / passes.under_scale)    # the share of a sphere cut by a symmetry plane
+        sensitivity = sums[0] / np.maximum(np.linalg.norm(superficial, axis=1), np.finfo(float).tiny)
+        n_pools = self.correction.bins.n_pools
+        rate = np.zeros(n_pools) if memory.correction_rate is None else memory.correction_rate
+        relief = np.zeros(n_pools) if memory.correction_relief is None else memory.correction_relief
+        rate, relief = self.correction.update(state, rate, relief, eps, target, direction, relievable, force,
+                                              sensitivity, dt)
+        return rate, relief, (relievable * target)[:, None] * direction
 
     def fluid_under(self, state: ParticleState, touched: Touched, offset: np.ndarray, u: np.ndarray,
                     mass: np.ndarray, weight: np.ndarray | None = None, v: np.ndarray | None = None,
@@ -277,3 +319,12 @@ class PenaltyForcing:
                                                     mass, weight, v, omega)
         scale = self.rho * state.volume / np.maximum(covered, np.finfo(float).tiny)
         return scale[:, None] * carried, scale, exchanged
+
+
+def with_relief(impulse: np.ndarray, relief: np.ndarray | None, dt: float) -> np.ndarray:
+    """``impulse`` (n, 6) with the drag correction's relief force (n, 3) over dt added (no torque)."""
+    if relief is None:
+        return impulse
+    out = impulse.copy()
+    out[:, :3] += relief * dt
+    return out
