@@ -60,7 +60,7 @@ def merge_csv(name: str, rows: list[dict], key) -> list[dict]:
 
 
 ERGUN_KEY = (lambda r: (float(r["cells_per_diameter"]), float(r["reynolds"]), r["correction"]))
-FLUIDIZED_KEY = (lambda r: (float(r["speed"]), r["correction"]))
+FLUIDIZED_KEY = (lambda r: (float(r["speed"]), r["correction"], float(r["dt"])))
 
 
 def ergun_row(cells_per_diameter: int, reynolds: float, correction: str, **options) -> dict:

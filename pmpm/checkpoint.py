@@ -33,7 +33,7 @@ from .errors import CaseError
 from .fluid import FluidState
 from .io import SerialOrder, h5py
 from .mesh import match_rows
-from .ownership import Partition, bisect, gather
+from .ownership import Partition, bisect, gather_with
 from .parallel import agree, exscan_offset
 from .particles import ParticleState
 
@@ -64,16 +64,17 @@ def write(comm, folder: Path, mesh, state) -> None:
                        removed_through=json.dumps(state.removed_through))
         particles, hydro_force, hydro_torque, contacts = state.particles, state.hydro_force, state.hydro_torque, \
             state.contacts
+        coupling = state.coupling
         if state.partition is not None:   # owned by ranks: gathered, in id order
-            particles = gather(comm, particles)
-            hydro_force = hydro_torque = np.zeros((len(particles), 3))   # no flow
+            particles, hydro_force, hydro_torque = gather_with(comm, particles, hydro_force, hydro_torque)
             contacts = gathered_memory(comm, contacts) if contacts is not None else None
+            coupling = coupling.gathered(comm) if coupling is not None else None
         groups = {"particles": {**{name: getattr(particles, name) for name in PARTICLE_FIELDS},
                                 "hydro_force": hydro_force, "hydro_torque": hydro_torque}}
         if state.partition is not None:
             groups["ownership"] = {"partition": state.partition.to_array()}
-        if state.coupling is not None:
-            groups["coupling"] = state.coupling.to_arrays()
+        if coupling is not None:
+            groups["coupling"] = coupling.to_arrays()
         if contacts is not None:
             groups["contacts"] = contacts.to_arrays()
         if state.body_forces is not None:
@@ -184,7 +185,9 @@ def restore(comm, data: dict, model, initial, path: Path):
         state = replace(state, **restored_fluid(comm, data["fluid"], mesh, path))
     if initial.partition is not None:   # ranks own particles: the boxes written, on as many ranks
         stored = Partition.from_array(data["ownership"]["partition"]) if "ownership" in data else None
-        if stored is None or len(stored.lower) != comm.size:
+        if model.flow is not None:   # (in a flow, the mesh's)
+            stored = initial.partition
+        elif stored is None or len(stored.lower) != comm.size:
             x = state.particles.x if comm.rank == 0 else np.zeros((0, 3))
             stored = bisect(comm, x, (mesh.lower, mesh.upper))
         state = state.owned_by(comm.rank, stored)

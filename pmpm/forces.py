@@ -1,8 +1,7 @@
 """Body forces on the particles: gravity with buoyancy, and the field forces of paper eq. 9-10.
 
-Pure functions of the particle arrays; where every rank holds every particle, every rank computes
-the same forces for every particle; where ranks own particles, each its own, with ghost copies of
-the others' within the cutoff.
+Pure functions of the particle arrays; on one rank, for every particle; where ranks own particles,
+each for its own, with ghost copies of the others' within the cutoff.
 
 Eq. 9, between particles i and j at centre distance R (within ``cutoff``)::
 

@@ -21,7 +21,7 @@ import h5py  # noqa: E402
 
 from .errors import CaseError  # noqa: E402
 from .serial_mesh import VTK_ORDER  # noqa: E402
-from .ownership import gather  # noqa: E402
+from .ownership import gather_with  # noqa: E402
 from .parallel import agree  # noqa: E402
 
 XDMF_TOPOLOGY = {"hex": "Hexahedron", "tet": "Tetrahedron"}
@@ -314,13 +314,13 @@ class Writers:
 
     def write(self, state) -> None:
         """Collective. One output time of a ``pmpm.state.RunState`` (particles owned by ranks gathered first)."""
-        particles = state.particles
+        particles, force, torque = state.particles, state.hydro_force, state.hydro_torque
         if state.partition is not None:
-            particles = gather(self.fields.comm, particles)
+            particles, force, torque = gather_with(self.fields.comm, particles, force, torque)
         fields = {}
         if self.with_fluid:
             fields = {"velocity": state.fluid.u, "pressure": state.fluid.p, "volume_fraction": state.volume_fraction}
-        self.particles.write(state.time, particles, state.hydro_force, state.hydro_torque)
+        self.particles.write(state.time, particles, force, torque)
         arrays = {"id": particles.id, "position": particles.x, "velocity": particles.v,
                   "angular_velocity": particles.omega, "radius": particles.radius, "density": particles.density}
         self.fields.write(state.time, fields, arrays)

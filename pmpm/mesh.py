@@ -143,12 +143,16 @@ class Mesh:
         dm.setBasicAdjacency(True, False)  # finite-volume adjacency: the overlap is the face neighbours
         self.build_stages = {"create": wallclock.perf_counter() - start_time}
         mark = wallclock.perf_counter()
+        # each rank's box, [lower, upper) (2, ranks, 3), outer sides at ±inf: it holds the centres of
+        # the rank's cells, and particles in a flow belong to the rank whose box holds their centre
+        self.part_boxes = np.stack([np.full((1, 3), -np.inf), np.full((1, 3), np.inf)])
         if comm.size > 1:   # partitioned by coordinates, on rank 0: the same partition in every run
             centres = None
             if comm.rank == 0:
                 xyz = dm.getCoordinatesLocal().getArray().reshape(-1, 3)
                 centres = xyz[serial_vertices(np.arange(n_global_cells))].mean(axis=1)
-            set_coordinate_partition(dm, comm, centres, *(work if comm.rank == 0 and work is not None else ()))
+            self.part_boxes = set_coordinate_partition(dm, comm, centres,
+                                                       *(work if comm.rank == 0 and work is not None else ()))
         migration = dm.distribute(overlap=1) if comm.size > 1 else None
         self.build_stages["distribute"] = wallclock.perf_counter() - mark
         mark = wallclock.perf_counter()

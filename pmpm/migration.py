@@ -1,5 +1,5 @@
-"""Stage 8: particles that left the domain are removed; where ranks own particles (runs without a
-flow, several ranks), those whose centre entered another rank's box migrate to it
+"""Stage 8: particles that left the domain are removed; where ranks own particles (runs on several
+ranks), those whose centre entered another rank's box migrate to it
 (ARCHITECTURE.md, "Particles"; ``pmpm.ownership`` holds the boxes and the exchanges).
 """
 from __future__ import annotations
@@ -93,12 +93,14 @@ def crossed_exits(exits: tuple, particles: ParticleState, dt: float) -> np.ndarr
     return outside
 
 
-def migrate_particles(comm, exits: tuple, exit_faces, state: RunState, start: np.ndarray, dt: float) -> RunState:
+def migrate_particles(comm, exits: tuple, exit_faces, state: RunState, start: np.ndarray, dt: float,
+                      rebalance: bool = True) -> RunState:
     """Collective. Where ranks own particles, stage 8 in one gather of counts and (when a particle
     changed rank) one exchange: the particles that crossed an exit are removed (``crossed_exits``),
     the ones whose centre entered another rank's box go to it, with their last hydrodynamic force
     and the contact memory of the contacts whose lower-id particle they are; when a rank owns more
-    than ``ownership.IMBALANCE`` × the mean, the boxes are bisected again first. A particle whose
+    than ``ownership.IMBALANCE`` × the mean, the boxes are bisected again first (with ``rebalance``;
+    in a flow the boxes are the mesh's, and stay). A particle whose
     state is not finite stops the run on every rank (NumericalError). The removed are counted by
     the boundary their path from ``start`` (the step's first positions, rows as the particles')
     crossed (``exit_faces``: ``pmpm.exits.ExitFaces``, or None), summed over ranks."""
@@ -119,7 +121,7 @@ def migrate_particles(comm, exits: tuple, exit_faces, state: RunState, start: np
         for name, n in rank_through.items():
             removed_through[name] = removed_through.get(name, 0) + n
     state = replace(state, removed=state.removed + int(counts[:, 2].sum()), removed_through=removed_through)
-    if counts[:, 0].max() > IMBALANCE * max(counts[:, 0].mean(), 1.0) and counts[:, 0].max() >= 64:
+    if rebalance and counts[:, 0].max() > IMBALANCE * max(counts[:, 0].mean(), 1.0) and counts[:, 0].max() >= 64:
         partition = bisect(comm, particles.x)
         owner = partition.owner_of(particles.x)
     elif counts[:, 1].sum() == 0:

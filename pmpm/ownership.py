@@ -1,7 +1,8 @@
 """Particles owned by ranks: the spatial partition, migration, ghost copies, gathering for output.
 
-Without a flow (DEM-only runs) a particle belongs to the rank whose box holds its centre. The boxes
-are a recursive coordinate bisection of the *particles* (the mesh's own partition balances cells:
+A particle belongs to the rank whose box holds its centre. In a flow the boxes are the mesh's
+(``Mesh.part_boxes``), so the owner holds the particle's centre cell. Without a flow (DEM-only
+runs) they are a recursive coordinate bisection of the *particles* (the mesh's own partition balances cells:
 in the hopper its cut lies above nearly every particle), planes cutting the longest extent of the
 particles in proportion to the ranks on each side, computed from histograms summed over ranks
 (no rank ever holds every particle), and computed again when the particle counts drift apart
@@ -9,8 +10,9 @@ particles in proportion to the ranks on each side, computed from histograms summ
 
 Each rank holds its owned particles (sorted by id) and, during a contact step, ghost copies of the
 particles of other ranks within a given distance of its box (``Halo``): read-only copies whose
-velocity changes go back to their owners (``Halo.merge``). With a flow, every rank still holds every
-particle (ARCHITECTURE.md): the partition is not used.
+velocity changes go back to their owners (``Halo.merge``); in a flow, also ghost copies of the
+particles that reach into its cells, whose per-particle sums meet among their holders
+(``Halo.sum_over_holders``; ``pmpm.coupling.holders``).
 """
 from __future__ import annotations
 
@@ -177,10 +179,18 @@ def particles_of(rows: dict) -> ParticleState:
 
 def gather(comm, particles: ParticleState) -> ParticleState:
     """Collective. Every rank's particles on every rank, sorted by id (for output and checkpoints)."""
+    return gather_with(comm, particles)[0]
+
+
+def gather_with(comm, particles: ParticleState, *arrays: np.ndarray) -> tuple:
+    """Collective. ``gather``, and ``arrays`` with a row per particle gathered in the same order."""
     if comm.size == 1:
-        return particles
-    parts = comm.allgather(particle_rows(particles))
-    return particles_of({name: np.concatenate([part[name] for part in parts]) for name in PARTICLE_FIELDS})
+        return (particles, *arrays)
+    parts = comm.allgather((particle_rows(particles), arrays))
+    rows = {name: np.concatenate([part[name] for part, _ in parts]) for name in PARTICLE_FIELDS}
+    order = np.argsort(rows["id"], kind="stable")
+    joined = [np.concatenate([extra[k] for _, extra in parts])[order] for k in range(len(arrays))]
+    return (ParticleState(**{name: values[order] for name, values in rows.items()}), *joined)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -285,6 +295,19 @@ class Halo:
             for rows in self.receive.values():
                 array[rows] = 0
 
+    def sum_over_holders(self, array: np.ndarray) -> np.ndarray:
+        """Collective. ``array`` (a row per local particle) with each row the sum of the rows of every
+        rank that holds the particle, on each of them (ghosts added to their owner, then copied back)."""
+        self.to_owners(array)
+        self.to_ghosts(array)
+        return array
+
+    def max_over_holders(self, array: np.ndarray) -> np.ndarray:
+        """Collective. As ``sum_over_holders``, the largest instead of the sum."""
+        self._swap(self.receive, self.send, array, _maximum)
+        self.to_ghosts(array)
+        return array
+
     def holders(self, touching: np.ndarray) -> np.ndarray:
         """Collective. (n_local,) for each particle, how many of the ranks holding it have ``touching``
         (bool per local row) true for it, this one included; 1 where none has."""
@@ -361,6 +384,10 @@ def _apply_changes(rows, arrays, reference, total, split):
 
 def _assign(array, rows, values):
     array[rows] = values
+
+
+def _maximum(array, rows, values):
+    array[rows] = np.maximum(array[rows], values)
 
 
 def _add(array, rows, values):

@@ -1,7 +1,5 @@
-"""The particles' state: arrays sorted by global id, identical on every rank (ARCHITECTURE.md).
-
-Particle counts are small next to cell counts, so every rank holds every particle and applies the
-same update; work over cells is what the ranks share. Solid spheres: m = ρ 4/3 π r³, I = 2/5 m r².
+"""The particles' state: arrays sorted by global id; on several ranks, the particles a rank owns
+(ARCHITECTURE.md, "Particles"). Solid spheres: m = ρ 4/3 π r³, I = 2/5 m r².
 
 A ``ParticleState`` is a value: the stages of a time step return a new one (``appended``,
 ``without``, or a ``copy`` they then change), so the state a step started from stays as it was

@@ -23,20 +23,26 @@ WORK_TOLERANCE = 0.1
 
 
 def coordinate_bisection(centres: np.ndarray, parts: int, work_at: np.ndarray | None = None,
-                         work: np.ndarray | None = None) -> np.ndarray:
+                         work: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(n,) the part of each point of ``centres`` (n, 3): split the points in two by a plane, in
     proportion to the parts on each side, and again, until one part is left. The plane is across
     the points' longest extent unless ``work`` (m,) at the points ``work_at`` (m, 3), e.g. the
     particles' volumes at their centres, would then be shared unfairly (module docstring). Ties in
-    a coordinate go by the points' order, so the result depends on the points alone."""
+    a coordinate go by the points' order, so the result depends on the points alone.
+
+    Also each part's box (2, parts, 3), [lower, upper) with the outer sides at ±inf: the planes lie
+    halfway between the last point of one side and the first of the other (on a box mesh, where the
+    cells between them meet), so a point's box is its part wherever the points are not tied."""
     if work_at is None:
         work_at, work = np.zeros((0, 3)), np.zeros(0)
     part = np.empty(len(centres), np.int64)
-    pending = [(np.arange(len(centres)), np.arange(len(work_at)), 0, parts)]
+    boxes = np.empty((2, parts, 3))
+    pending = [(np.arange(len(centres)), np.arange(len(work_at)), 0, parts, np.full(3, -np.inf), np.full(3, np.inf))]
     while pending:
-        points, loads, first, count = pending.pop()
+        points, loads, first, count, lower, upper = pending.pop()
         if count == 1:
             part[points] = first
+            boxes[0, first], boxes[1, first] = lower, upper
             continue
         left = count // 2
         cut = int(round(len(points) * left / count))
@@ -49,27 +55,33 @@ def coordinate_bisection(centres: np.ndarray, parts: int, work_at: np.ndarray | 
             on_left = work_at[loads, axis] < plane
             unfair = abs(share[on_left].sum() / total - left / count) if total > 0 else 0.0
             if best is None or unfair < best[0]:
-                best = (unfair, order, on_left)
+                best = (unfair, order, on_left, axis, plane)
             if unfair <= WORK_TOLERANCE:
                 break
-        _, order, on_left = best
-        pending += [(order[:cut], loads[on_left], first, left),
-                    (order[cut:], loads[~on_left], first + left, count - left)]
-    return part
+        _, order, on_left, axis, plane = best
+        if 0 < cut < len(order):   # halfway to the last point on the lower side
+            plane = 0.5 * (plane + centres[order[cut - 1], axis])
+        upper_left, lower_right = upper.copy(), lower.copy()
+        upper_left[axis] = lower_right[axis] = plane
+        pending += [(order[:cut], loads[on_left], first, left, lower, upper_left),
+                    (order[cut:], loads[~on_left], first + left, count - left, lower_right, upper)]
+    return part, boxes
 
 
 def set_coordinate_partition(dm, comm, centres: np.ndarray | None, work_at: np.ndarray | None = None,
-                             work: np.ndarray | None = None) -> None:
+                             work: np.ndarray | None = None) -> np.ndarray:
     """Collective. Make ``dm``'s next ``distribute`` give rank r the cells whose part is r, the
     parts from ``coordinate_bisection`` of the cell centres (n_cells, 3) and the ``work`` at
     ``work_at``, which rank 0 passes (it holds the whole undistributed mesh) and the others pass
-    as None."""
+    as None. Returns the parts' boxes (2, ranks, 3) on every rank."""
     partitioner = dm.getPartitioner()
     partitioner.setType(PETSc.Partitioner.Type.SHELL)
+    boxes = None
     if comm.rank == 0:
-        part = coordinate_bisection(centres, comm.size, work_at, work)
+        part, boxes = coordinate_bisection(centres, comm.size, work_at, work)
         sizes = np.bincount(part, minlength=comm.size)
         points = np.argsort(part, kind="stable")
     else:
         sizes, points = np.zeros(comm.size, np.int64), np.zeros(0, np.int64)
     partitioner.setShellPartition(comm.size, sizes.astype(PETSc.IntType), points.astype(PETSc.IntType))
+    return comm.bcast(boxes, root=0)

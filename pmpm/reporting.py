@@ -10,6 +10,7 @@ from contextlib import contextmanager
 import numpy as np
 from mpi4py import MPI
 
+from .ownership import gather
 from .parallel import allreduce_sum, print0, warn
 
 
@@ -81,7 +82,7 @@ def describe_flow(model, state) -> str:
         warn(comm, f"[run] dt = {run.dt:g} s gives a CFL number of {cfl:.2f} at the boundary velocities "
                    f"(above max_cfl = {run.max_cfl:g}); the explicit convection may go unstable")
     diffusion = comm.allreduce(fluid.viscosity / fluid.density * run.dt / h ** 2, op=MPI.MAX)
-    if diffusion > 1 and (len(state.particles) or model.injectors) and comm.rank == 0:
+    if diffusion > 1 and (state.n_global_particles or model.injectors) and comm.rank == 0:
         warn(comm, f"[run] dt = {run.dt:g} s gives ν dt/h² = {diffusion:.3g}: above 1 the drag on particles "
                    "falls with dt, the more so the fewer cells per diameter (docs/coupling.md); a smaller dt keeps it")
     warn_outside_validation(model, state, float(np.linalg.norm(flow.u_fixed, axis=1).max(initial=0.0)))
@@ -104,6 +105,8 @@ def warn_outside_validation(model, state, boundary_speed: float) -> None:
 
     comm, mesh, flow, fluid = model.comm, model.mesh, model.flow, model.case.fluid
     particles, injectors = state.particles, model.injectors
+    if state.partition is not None:   # (at start-up: every rank looks at every particle)
+        particles = gather(comm, particles)
     boundary_speed = comm.allreduce(boundary_speed, op=MPI.MAX)
     h_max = comm.allreduce(float(flow.h[:mesh.n_owned_cells].max(initial=0.0)), op=MPI.MAX)
     gravity = float(np.linalg.norm(model.case.run.gravity))

@@ -23,6 +23,7 @@ from .collisions import (CollisionSettings, advance_with_collisions, build_walls
 from .collisions.subdomains import advance_owned
 from .coupling import CouplingMemory, External, PatchForcing, PenaltyForcing, build_forcing, volume_fraction
 from .coupling.bodies import BodyForcing
+from .coupling.holders import Holders
 from .errors import CaseError, NumericalError, Stopped
 from .exits import ExitFaces
 from .fluid import FlowSolver
@@ -31,8 +32,8 @@ from .injection import Injector, NewParticles, build_injectors, initial_particle
 from .placement import place_releases
 from .mesh import Mesh
 from .migration import check_finite, exit_triangles as exit_triangles_of, migrate_particles, remove_outside
-from .ownership import bisect, gather
-from .parallel import agree, allreduce_sum, print0
+from .ownership import Halo, Partition, bisect, gather, gather_with
+from .parallel import agree, print0
 from .particles import FIXED, ParticleState, accelerate
 from .reporting import StageTimes
 from .signals import StopRequests, stop_message
@@ -60,6 +61,8 @@ class Model:
     body_forcing: BodyForcing | None = None
     exits: ExitFaces | None = None
     exit_triangles: tuple | None = None   # where ranks own particles: the triangles particles leave through
+    cell_boxes: Partition | None = None   # ranks owning particles in a flow: each rank's owned cells' extent
+    coupling_reach: float = 0.0           # ... and how far beyond a sphere the forcing reaches a cell (m)
 
     @property
     def fluid_density(self) -> float:
@@ -67,9 +70,10 @@ class Model:
 
     @property
     def owns_particles(self) -> bool:
-        """Whether each rank holds only the particles it owns (``pmpm.ownership``): a run without a
-        flow on several ranks. With a flow every rank holds every particle (ARCHITECTURE.md)."""
-        return self.flow is None and self.comm.size > 1
+        """Whether each rank holds only the particles it owns (``pmpm.ownership``): any run on several
+        ranks. Without a flow the boxes are bisected over the particles; with one they are the
+        mesh's own (``Mesh.part_boxes``), so a particle belongs to the rank of its centre's cell."""
+        return self.comm.size > 1
 
 
 def build_mesh(comm, case: Case) -> Mesh:
@@ -114,9 +118,16 @@ def build_model(comm, case: Case, mesh: Mesh) -> Model:
             body_forcing = BodyForcing(mesh, bodies, case.coupling, case.fluid.density, case.fluid.viscosity)
     # which boundary each particle that leaves crosses (only where particles can be)
     exits = ExitFaces.of_mesh(mesh) if (case.particles is not None or case.injections) else None
-    exit_triangles = exit_triangles_of(case, mesh) if flow is None and comm.size > 1 else None
+    exit_triangles = exit_triangles_of(case, mesh) if comm.size > 1 else None
+    cell_boxes, reach = None, 0.0
+    if flow is not None and comm.size > 1:
+        corners = mesh.vertex_xyz[mesh.cell_vertices[:mesh.n_owned_cells]].reshape(-1, 3)
+        extents = comm.allgather((corners.min(axis=0, initial=np.inf), corners.max(axis=0, initial=-np.inf)))
+        cell_boxes = Partition(np.array([low for low, _ in extents]), np.array([high for _, high in extents]))
+        reach = comm.allreduce(float(forcing.locator.search_reach.max(initial=0.0)), op=MPI.MAX)
     return Model(comm, case, mesh, flow, forcing, build_injectors(case),
-                 collision_settings(case) if case.collisions else None, bodies, body_forcing, exits, exit_triangles)
+                 collision_settings(case) if case.collisions else None, bodies, body_forcing, exits, exit_triangles,
+                 cell_boxes, reach)
 
 
 def largest_diameter(case: Case) -> float:
@@ -143,12 +154,20 @@ def initial_state(model: Model) -> RunState:
 
 def distribute(model: Model, state: RunState) -> RunState:
     """Collective. Where ranks own particles (``Model.owns_particles``): the case's particles, which
-    every rank read whole, as each rank's own, in boxes bisected over them. Otherwise the state."""
+    every rank read whole, as each rank's own, in the mesh's boxes (a flow) or in boxes bisected
+    over them. Otherwise the state."""
     if not model.owns_particles:
         return state
+    return state.owned_by(model.comm.rank, particle_boxes(model, state.particles.x))
+
+
+def particle_boxes(model: Model, x: np.ndarray) -> Partition:
+    """Collective. The boxes whose ranks own the particles at ``x`` (every rank's, (n, 3)): with a
+    flow the mesh's (fixed), without one bisected over the particles (``ownership.bisect``)."""
     comm, mesh = model.comm, model.mesh
-    x = state.particles.x if comm.rank == 0 else np.zeros((0, 3))
-    return state.owned_by(comm.rank, bisect(comm, x, (mesh.lower, mesh.upper)))
+    if model.flow is not None:
+        return Partition(mesh.part_boxes[0], mesh.part_boxes[1])
+    return bisect(comm, x if comm.rank == 0 else np.zeros((0, 3)), (mesh.lower, mesh.upper))
 
 
 def add_particles(model: Model, state: RunState, new: NewParticles, validate: bool = False) -> RunState:
@@ -181,7 +200,7 @@ def advance(model: Model, state: RunState, dt: float, times: StageTimes) -> RunS
     # 2–5. locate the particles' cells, advance the flow with their forcing, drag and torque
     force, torque = external.force, external.torque
     if model.flow is not None:
-        state = flow_stage(model, state, external, dt, times, injected=state.particles.id >= state.fresh_from)
+        state = flow_stage(model, state, external, dt, times)
         force, torque = force + state.hydro_force, torque + state.hydro_torque
     # 7. update V and ω, then move, with collisions resolved in time order
     moved_from = state.particles.x
@@ -190,7 +209,8 @@ def advance(model: Model, state: RunState, dt: float, times: StageTimes) -> RunS
     # 8. particles that left the domain are removed; particles whose centre changed rank migrate
     with times.stage("owners"):
         state = remove_outside(model, state, moved_from) if state.partition is None else \
-            migrate_particles(model.comm, model.exit_triangles, model.exits, state, moved_from, dt)
+            migrate_particles(model.comm, model.exit_triangles, model.exits, state, moved_from, dt,
+                              rebalance=model.flow is None)
     # 1 (of the next step). particles released within this step, where they are at its end
     state = replace(state, fresh_from=state.next_id)
     if model.injectors:
@@ -231,25 +251,27 @@ def external_forces(model: Model, state: RunState) -> External:
     return External(force, np.zeros_like(force))
 
 
-def flow_stage(model: Model, state: RunState, external: External, dt: float, times: StageTimes,
-               injected: np.ndarray | None = None) -> RunState:
+def flow_stage(model: Model, state: RunState, external: External, dt: float, times: StageTimes) -> RunState:
     """Collective. Steps 2–5: the particles' touched cells, the flow advanced with their forcing
     (``forcing_passes`` momentum solves, the forcing updating its guess of the particles' motion
     after each), the projection, and the fluid's force and torque on each particle; the bodies'
     prescribed motion enters the same solves, and the fluid's force on each body comes out.
-    Particles ``injected`` this step (bool mask) displace their volume of fluid, which the
-    projection makes leave through the outlets."""
-    flow, forcing, particles, bodies = model.flow, model.forcing, state.particles, model.body_forcing
+    Particles injected in the last step (ids from ``state.fresh_from``) displace their volume of
+    fluid, which the projection makes leave through the outlets. Where ranks own particles, each
+    works on its own and ghost copies of those that reach into its cells (``held_for_the_flow``)."""
+    flow, forcing, bodies = model.flow, model.forcing, model.body_forcing
     n_owned = model.mesh.n_owned_cells
     step, time = state.step, state.time
-    coupled = len(particles) > 0
+    coupled = state.n_global_particles > 0   # (the same on every rank)
     passes = model.case.coupling.forcing_passes if coupled else 1
     fluid = state.fluid
     with times.stage("coupling"):
+        particles, holders, external, state = held_for_the_flow(model, state, external)
         touched = forcing.locate(particles)
-        displaced = displaced_volume(model, particles, touched, injected, dt)
+        injected = particles.id >= state.fresh_from if state.next_id > state.fresh_from else None
+        displaced = displaced_volume(model, particles, touched, injected, dt, holders)
         if coupled:
-            forcing_state, fluid = forcing.begin(particles, touched, fluid, state.coupling, dt)
+            forcing_state, fluid = forcing.begin(particles, touched, fluid, state.coupling, dt, holders)
         if bodies is not None:   # where the bodies are at the step's end, moving as prescribed
             body_state = bodies.begin(time + dt, fluid.u)
             body_diagonal, body_target = bodies.implicit_terms(body_state)
@@ -291,24 +313,44 @@ def flow_stage(model: Model, state: RunState, external: External, dt: float, tim
         if coupled:
             exchange = forcing.after_projection(particles, forcing_state, fluid, external, dt, state.coupling,
                                                 step, time)
-            state = replace(state, fluid=exchange.fluid, hydro_force=exchange.force, hydro_torque=exchange.torque,
-                            coupling=exchange.memory)
+            owned = holders.owned
+            state = replace(state, fluid=exchange.fluid, hydro_force=exchange.force[owned],
+                            hydro_torque=exchange.torque[owned], coupling=exchange.memory)
     flow.check(state.fluid, step, time)
     return state
 
 
-def displaced_volume(model: Model, particles: ParticleState, touched, injected: np.ndarray | None,
-                     dt: float) -> np.ndarray | None:
+def held_for_the_flow(model: Model, state: RunState, external: External):
+    """Collective. The particles this rank works on in the flow stage, where their per-particle
+    sums meet (``coupling.holders.Holders``), and their external forces: every particle where every
+    rank holds them; where ranks own particles, its own and ghost copies of every particle whose
+    sphere, with the forcing's reach, comes within this rank's cells (the owners' external forces
+    copied to them). Returns (particles, holders, external, state: its ``ranks_seen`` counting them)."""
+    if state.partition is None:
+        return state.particles, Holders.everywhere(model.comm, len(state.particles)), external, state
+    owned = state.particles
+    halo, local = Halo.build(model.comm, model.cell_boxes, owned, (owned.radius + model.coupling_reach) * (1 + 1e-9))
+    force, torque = np.zeros((len(local), 3)), np.zeros((len(local), 3))
+    force[halo.owned], torque[halo.owned] = external.force, external.torque
+    halo.to_ghosts(force, torque)
+    seen = {**state.ranks_seen, "owned": max(state.ranks_seen.get("owned", 0), len(owned)),
+            "ghosts": max(state.ranks_seen.get("ghosts", 0), len(local) - len(owned))}
+    return local, Holders(model.comm, halo, halo.owned), External(force, torque), replace(state, ranks_seen=seen)
+
+
+def displaced_volume(model: Model, particles: ParticleState, touched, injected: np.ndarray | None, dt: float,
+                     holders: Holders) -> np.ndarray | None:
     """Collective (when particles were injected). The paper's mass source for continuous
-    injection, (n_local,) m³/s: each particle injected this step displaces its volume of fluid
-    within the step, shared among the cells it covers by their α V; None when none was."""
-    if injected is None or not injected.any():
+    injection, (n_local,) m³/s: each particle ``injected`` in the last step (bool per particle;
+    None, the same on every rank, where none was) displaces its volume of fluid within this step,
+    shared among the cells it covers by their α V; None when none was."""
+    if injected is None:
         return None
     mesh = model.mesh
     new = injected[touched.particle]
     p, c = touched.particle[new], touched.cell[new]
     covered = touched.alpha[new] * mesh.cell_volume[c]
-    per_particle = allreduce_sum(model.comm, np.bincount(p, covered, minlength=len(particles)))
+    per_particle = holders.sum(np.bincount(p, covered, minlength=len(particles)).astype(float))
     share = covered / np.maximum(per_particle[p], np.finfo(float).tiny)
     source = np.zeros(mesh.n_local_cells)
     source[:mesh.n_owned_cells] = np.bincount(c, share * particles.volume[p] / dt, minlength=mesh.n_owned_cells)
@@ -375,8 +417,21 @@ class Simulation:
         return gather(self.comm, self.state.particles) if self.state.partition is not None else self.state.particles
 
     fluid_state = property(lambda self: self.state.fluid)
-    hydro_force = property(lambda self: self.state.hydro_force)
-    hydro_torque = property(lambda self: self.state.hydro_torque)
+    @property
+    def hydro_force(self) -> np.ndarray:
+        """The fluid's force on every particle (collective where ranks own particles: in id order)."""
+        return self._hydro()[0]
+
+    @property
+    def hydro_torque(self) -> np.ndarray:
+        """The fluid's torque on every particle (collective where ranks own particles: in id order)."""
+        return self._hydro()[1]
+
+    def _hydro(self):
+        state = self.state
+        if state.partition is None:
+            return state.hydro_force, state.hydro_torque
+        return gather_with(self.comm, state.particles, state.hydro_force, state.hydro_torque)[1:]
 
     def describe_flow(self) -> str:
         return reporting.describe_flow(self.model, self.state)
@@ -403,7 +458,7 @@ class Simulation:
             with StopRequests() as stops:
                 while self.state.time < run.end_time * (1 - 1e-12):
                     dt = next_time_step(model, self.state, min(next_output, next_checkpoint, run.end_time))
-                    displacing = bool((self.state.particles.id >= self.state.fresh_from).any())
+                    displacing = self.state.next_id > self.state.fresh_from   # (injected in the last step)
                     self.advance(dt)   # on a NumericalError self.state stays the state the step started from
                     watch = watch_flow(model, self.state, dt, watch, displacing)
                     time = self.state.time

@@ -23,8 +23,8 @@ class RunState:
 
     time, step : simulated time (s) and steps taken; dt : the last step's size (s)
     particles : every particle (``pmpm.particles``); with ``partition``, the particles this rank owns
-    partition : the ranks' boxes (``pmpm.ownership``) where particles are owned by ranks (runs without
-        a flow, on several ranks), else None (every rank holds every particle)
+    partition : the ranks' boxes (``pmpm.ownership``) where particles are owned by ranks (several
+        ranks; without a flow bisected over the particles, with one the mesh's), else None
     fluid : the flow, or None without [fluid]
     hydro_force, hydro_torque : (n, 3) the fluid's force (N) and torque (N m) on each particle over the
         last step (zero where no flow acted yet)

@@ -7,6 +7,7 @@ from mpi4py import MPI
 
 from pmpm.case import load_case
 from pmpm.coupling import CouplingMemory, External, shared_alpha, shared_smooth
+from pmpm.coupling.holders import Holders
 from pmpm.errors import NumericalError
 from pmpm.fluid import FluidState
 from pmpm.mesh import Mesh
@@ -167,11 +168,12 @@ def test_light_particle_explicit_rings_implicit_is_stable(tmp_path):
 
 
 @pytest.mark.mpi
-def test_crossing_the_rank_boundary_same_trajectory(comm, tmp_path):
+@pytest.mark.parametrize("forcing, update", [("penalty", "implicit"), ("patch", "implicit"), ("penalty", "explicit")])
+def test_crossing_the_rank_boundary_same_trajectory(comm, tmp_path, forcing, update):
     """A heavy sphere settling obliquely across the middle of the box: the 2-rank trajectory equals
-    the 1-rank one (run here on MPI.COMM_SELF) to 1e-8 relative."""
+    the 1-rank one (run here on MPI.COMM_SELF) to 1e-8 relative, with either forcing and update."""
     setting = dict(gravity="[2.0, 1.0, -9.81]", dt=0.004, n=12, m=16, H=0.1, L=0.06, mu=0.1, rho_p=2000.0,
-                   radius=0.006, position="[0.028, 0.029, 0.052]")
+                   radius=0.006, position="[0.028, 0.029, 0.052]", forcing=forcing, update=update)
     shared = comm.bcast(tmp_path, root=0)
     trajectories = []
     touching = 0
@@ -189,6 +191,48 @@ def test_crossing_the_rank_boundary_same_trajectory(comm, tmp_path):
         assert min(comm.allgather(touching)) > 0, "the sphere straddles both ranks"
     assert abs(parallel[-1, 0] - parallel[0, 0]) > 0.001, "the sphere moves across the box"
     scale = np.abs(serial).max(axis=0)
+    assert (np.abs(parallel - serial) <= 1e-8 * scale + 1e-14).all()
+
+
+@pytest.mark.mpi
+def test_particles_in_a_flow_are_owned_by_ranks_and_move_as_on_one(comm, tmp_path):
+    """Twelve heavy spheres (3 cells per diameter) settling obliquely, no collisions, in a box the
+    mesh cuts across its height between two layers of them. On 2 ranks each rank holds its own
+    spheres (centre in its box) and ghost copies of those whose sphere, with the forcing's reach,
+    comes within its cells, no others; spheres cross the cut and change owner; and the trajectories,
+    drag included, are the 1-rank ones (run here on MPI.COMM_SELF) to 1e-8 relative."""
+    r = 0.0075
+    # a layer below the cut (z = 0.05) and one just above it, which settles across
+    lattice = [(x, y, z) for x in (0.012, 0.030, 0.048) for y in (0.021, 0.039) for z in (0.0325, 0.0505)]
+    extra = "".join(f"[[particles.add]]\nposition = [{x}, {y}, {z}]\nradius = {r}\ndensity = 2000.0\n"
+                    for x, y, z in lattice[1:])
+    setting = dict(gravity="[2.0, 1.0, -9.81]", dt=0.004, n=12, m=20, H=0.1, L=0.06, mu=0.1, rho_p=2000.0,
+                   radius=r, position=f"[{lattice[0][0]}, {lattice[0][1]}, {lattice[0][2]}]", extra=extra)
+    shared = comm.bcast(tmp_path, root=0)
+    runs = []
+    for c in (comm, MPI.COMM_SELF):
+        sim = simulation(c, shared, **setting)
+        owned = c is comm and c.size > 1
+        owners_at_start = sim.state.partition.owner_of(sim.particles.x) if owned else None
+        path, most_near = [], 0
+        for _ in range(25):
+            if owned:   # the particles that reach this rank's cells in the coming step, not its own
+                everyone, model = sim.particles, sim.model
+                near = model.cell_boxes.distance(everyone.x)[:, c.rank] < everyone.radius + model.coupling_reach
+                mine = sim.state.partition.owner_of(everyone.x) == c.rank
+                most_near = max(most_near, int((near & ~mine).sum()))
+            sim.advance(0.004)
+            path.append(np.concatenate([sim.particles.x, sim.particles.v, sim.hydro_force], axis=1))
+            if owned:   # what this rank holds: its own, and ghosts near its cells only
+                assert (sim.state.partition.owner_of(sim.state.particles.x) == c.rank).all()
+                assert sim.state.ranks_seen["ghosts"] <= most_near
+        runs.append((np.array(path), owners_at_start, sim))
+    (parallel, owners, sim), (serial, _, _) = runs
+    assert len(parallel[0]) == 12
+    if comm.size > 1:
+        assert set(owners) == {0, 1} and sim.state.ranks_seen["ghosts"] < 12
+        assert (sim.state.partition.owner_of(sim.particles.x) != owners).any(), "a sphere changed owner"
+    scale = np.abs(serial).max(axis=(0, 1))
     assert (np.abs(parallel - serial) <= 1e-8 * scale + 1e-14).all()
 
 
@@ -420,7 +464,8 @@ def test_momentum_of_fluid_and_particle_is_conserved(tmp_path, request, forcing,
         if forcing == "patch":
             return (mass[:, None] * (state.v[p] + np.cross(state.omega[p], mesh.cell_center[c] - x[p]))).sum(axis=0)
         under = flow.rho * shared_smooth(touched, mesh.n_owned_cells) * mesh.cell_volume[c]
-        return coupling.fluid_under(state, touched, mesh.cell_center[c] - x[p], sim.fluid_state.u, under)[0][0, :3]
+        return coupling.fluid_under(state, touched, mesh.cell_center[c] - x[p], sim.fluid_state.u, under,
+                                    Holders.everywhere(MPI.COMM_SELF, len(state)))[0][0, :3]
 
     start = state.mass[0] * state.v[0]
     scale = np.linalg.norm(start)

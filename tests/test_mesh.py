@@ -195,15 +195,22 @@ def test_bisection_shares_the_particles_work():
     # particles' work the cuts go across the width, and every part still has its share of cells
     centres, points = column_with_a_bed()
     cell_of_point = np.ravel_multi_index(np.floor(points).astype(int).T, (9, 3, 22))
-    plain = coordinate_bisection(centres, 2)
+    plain = coordinate_bisection(centres, 2)[0]
     assert np.bincount(plain[cell_of_point], minlength=2).tolist() == [500, 0]
     for parts in (2, 4):
-        part = coordinate_bisection(centres, parts, points, np.ones(len(points)))
+        part, boxes = coordinate_bisection(centres, parts, points, np.ones(len(points)))
         cells = np.bincount(part, minlength=parts)
         assert cells.max() - cells.min() <= 1
         shares = np.bincount(part[cell_of_point], minlength=parts) / len(points)
         # each cut within the tolerance of its due share; two levels of cuts compound it
         assert np.abs(shares - 1 / parts).max() <= WORK_TOLERANCE * (1 if parts == 2 else 1.5 / 2)
+        # every centre lies in one box, its part's, but where a cut splits a layer of cells with the
+        # same coordinate: the plane then runs through that layer
+        inside = ((centres[:, None] >= boxes[0][None]) & (centres[:, None] < boxes[1][None])).all(axis=2)
+        assert (inside.sum(axis=1) == 1).all()
+        elsewhere = np.argmax(inside, axis=1) != part
+        planes = np.unique(boxes[np.isfinite(boxes)])
+        assert np.isin(centres[elsewhere], planes).any(axis=1).all()
 
 
 @pytest.mark.mpi

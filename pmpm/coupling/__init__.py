@@ -13,7 +13,7 @@ when the case is built (``build_forcing``):
 The time loop (``pmpm.simulation.flow_stage``) calls, in this order, each a value in, a value out:
 
     touched = forcing.locate(particles)                           local
-    passes, fluid = forcing.begin(particles, touched, fluid, memory, dt)
+    passes, fluid = forcing.begin(particles, touched, fluid, memory, dt, holders)
     per forcing pass:
         diagonal, target = forcing.implicit_terms(particles, passes)      → the momentum solve
         u_star, source, passes = forcing.after_solve(particles, passes, u_star, external, dt)
@@ -22,9 +22,10 @@ The time loop (``pmpm.simulation.flow_stage``) calls, in this order, each a valu
 
 ``passes`` carries the step's state from stage to stage; ``memory`` (``CouplingMemory``) what the
 coupling carries to the next step. The particle update (``[coupling] update``, implicit or
-explicit) is in ``update.py``. Parallel: each rank sums over its owned cells only; the
-per-particle sums meet in one Allreduce (``sums.py``), and every rank applies the same update to
-its copy of the particles. docs/coupling.md has the method's measurements.
+explicit) is in ``update.py``. Parallel: each rank sums over its owned cells only, for its own
+particles and ghost copies of those that reach into its cells; the per-particle sums meet among
+each particle's holders (``holders.py``, ``sums.py``), and every holder applies the same update to
+its copy. docs/coupling.md has the method's measurements.
 """
 from __future__ import annotations
 

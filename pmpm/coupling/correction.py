@@ -45,6 +45,7 @@ import numpy as np
 from mpi4py import MPI
 
 from ..reference import beetstra_drag_factor, di_felice_drag_factor
+from .memory import by_id
 
 CORRELATIONS = {"beetstra": beetstra_drag_factor, "di_felice": di_felice_drag_factor}
 RATE_CAP = 1e3    # κ_x dt at most: the cells near the particle move with it to 1e-3
@@ -134,9 +135,7 @@ class DragCorrection:
         force at the end of the last step (0 for a particle new to the flow); None where no pool relieves."""
         if memory.correction_relief is None or not memory.correction_relief.any():
             return None
-        known_ids = memory.under_id
-        position = np.minimum(np.searchsorted(known_ids, state.id), max(len(known_ids) - 1, 0))
-        same = (known_ids[position] == state.id) if len(known_ids) else np.zeros(len(state), bool)
+        position, same = by_id(memory.under_id, state.id)
         beta = memory.correction_relief[self.bins.pool_of(state.x)]
         return np.where(same[:, None], -beta[:, None] * memory.under_target[position], 0.0)
 
@@ -161,7 +160,8 @@ class DragCorrection:
         return force, direction, relievable
 
     def update(self, state, rate: np.ndarray, relief: np.ndarray, eps: np.ndarray, target: np.ndarray,
-               direction: np.ndarray, relievable: np.ndarray, force: np.ndarray, sensitivity: np.ndarray, dt: float):
+               direction: np.ndarray, relievable: np.ndarray, force: np.ndarray, sensitivity: np.ndarray, dt: float,
+               holders):
         """(κ_x, β), each (n_pools,), of each pool for the next step (``rate``, ``relief``: this step's).
         D = Σ F_c − Σ F·ŝ, where the drag the pool's particles felt, ``force`` (n, 3) along their slips
         ``direction`` (n, 3), falls short of their correlation's ``target`` (n,) (D > 0) or exceeds it:
@@ -170,20 +170,21 @@ class DragCorrection:
         ``sensitivity`` S (n,): a particle's force along ŝ per unit κ_x (N s); ``eps`` (n,) each
         particle's filtered voidage, ε̄ their mean in the pool; g = ``GAIN``. The pool's mean drag is
         the correlation's (what a bed's pressure drop measures); how it is shared among the
-        particles, by their own flow, is resolved."""
+        particles, by their own flow, is resolved. ``holders`` (``holders.Holders``): the pools' sums
+        are taken over the particles this rank owns, then over the ranks."""
         n_bins = self.bins.n_pools
-        where = self.bins.pool_of(state.x)
-        count = np.bincount(where, minlength=n_bins)
-        voidage = np.bincount(where, eps, minlength=n_bins) / np.maximum(count, 1)
-        felt = np.einsum("ij,ij->i", force, direction)
-        deficit = np.bincount(where, target - felt, minlength=n_bins)
-        response = np.bincount(where, sensitivity, minlength=n_bins)
-        scale = np.bincount(where, target, minlength=n_bins)
+        mine = holders.owned
+        where = self.bins.pool_of(state.x[mine])
+        felt = np.einsum("ij,ij->i", force[mine], direction[mine])
+        target, relievable = target[mine], relievable[mine]
+        sums = holders.across_ranks(np.stack([np.bincount(where, values, minlength=n_bins) for values in (
+            np.ones(len(where)), eps[mine], target - felt, sensitivity[mine], target, relievable * (target - felt),
+            relievable * target)]).astype(float))   # (bincount of nothing is int)
+        count, voidage_sum, deficit, response, scale, excess, relieved = sums
+        voidage = voidage_sum / np.maximum(count, 1)
         tiny = np.finfo(float).tiny
         usable = response > 1e-12 * np.maximum(scale, tiny)
         step = np.where(usable, GAIN * voidage * deficit / np.where(usable, response, 1.0), 0.0)
-        excess = np.bincount(where, relievable * (target - felt), minlength=n_bins)
-        relieved = np.bincount(where, relievable * target, minlength=n_bins)
         relieving = (rate <= 0.0) & ((relief > 0.0) | (excess < 0.0)) & (relieved > 0.0)
         new_relief = np.where(relieving, relief - GAIN * voidage * excess / np.maximum(relieved, tiny), relief)
         new_rate = np.where(relieving, rate, rate + step)

@@ -19,6 +19,7 @@ import numpy as np
 
 from ..fluid import FluidState
 from ..particles import ParticleState
+from .holders import Holders
 from .locate import CellLocator, Touched, shared_alpha
 from .memory import CouplingMemory
 from .sums import fluid_sums
@@ -29,7 +30,8 @@ from .update import Exchange, External, blended_change, hydrodynamic_force, watc
 class PatchPasses:
     """One step of the patch forcing, handed from pass to pass: the pairs' shared α (m,), arm r
     from the centre (m, 3) and covered fluid mass (m,); the motion the last pass patched (n, 3);
-    the momentum all passes so far took from the fluid, with its moment (n, 6)."""
+    the momentum all passes so far took from the fluid, with its moment (n, 6); where the
+    per-particle sums meet (``holders.Holders``)."""
 
     touched: Touched
     alpha: np.ndarray
@@ -38,6 +40,7 @@ class PatchPasses:
     guess_v: np.ndarray
     guess_omega: np.ndarray
     pending: np.ndarray
+    holders: Holders
 
 
 class PatchForcing:
@@ -62,11 +65,12 @@ class PatchForcing:
         return self.locator.locate(state)
 
     def begin(self, state: ParticleState, touched: Touched, fluid: FluidState, memory: CouplingMemory,
-              dt: float) -> tuple[PatchPasses, FluidState]:
+              dt: float, holders: Holders | None = None) -> tuple[PatchPasses, FluidState]:
         """Collective. The step's pairs; particles new to the flow (present at the start, or just
         injected; ids above ``memory.known_id``) first bring the fluid they cover up to their motion:
         it is the solver's fluid, not the user's, and a particle released at speed into still fluid
-        would otherwise spend its first step accelerating it."""
+        would otherwise spend its first step accelerating it. ``holders``: where the per-particle
+        sums meet (default: every rank holds every particle)."""
         n_owned = self.mesh.n_owned_cells
         p, c = touched.particle, touched.cell
         alpha = shared_alpha(touched, n_owned)
@@ -77,8 +81,9 @@ class PatchForcing:
             u = patched(fluid.u, c[pick], alpha[pick],
                         state.v[p[pick]] + np.cross(state.omega[p[pick]], r[pick]), n_owned)
             fluid = replace(fluid, u=self.mesh.update_ghosts(u))
+        holders = holders if holders is not None else Holders.everywhere(self.comm, len(state))
         passes = PatchPasses(touched, alpha, r, self.rho * alpha * self.mesh.cell_volume[c], state.v, state.omega,
-                             np.zeros((len(state), 6)))
+                             np.zeros((len(state), 6)), holders)
         return passes, fluid
 
     def implicit_terms(self, state: ParticleState, passes: PatchPasses):
@@ -91,8 +96,8 @@ class PatchForcing:
         the step's; the particle update from all of it; in two-way mode u patched with the updated
         motion (a new array). Returns (u, passes, dv, dw)."""
         p, c = passes.touched.particle, passes.touched.cell
-        covered, moment, _, deviation = fluid_sums(self.comm, len(state), p, c, passes.r, u, passes.mass, passes.mass,
-                                                    passes.guess_v, passes.guess_omega)
+        covered, moment, _, deviation = fluid_sums(passes.holders, len(state), p, c, passes.r, u, passes.mass,
+                                                    passes.mass, passes.guess_v, passes.guess_omega)
         pending = passes.pending + deviation
         dv, dw = blended_change(state, external, pending, dt, covered, moment, self.explicit)
         free = state.movable
@@ -124,11 +129,11 @@ class PatchForcing:
         if self.two_way:
             fluid = replace(fluid, u=self.mesh.update_ghosts(u))
         force, torque = hydrodynamic_force(state, external, dv, dw, passes.pending, dt)
-        memory = replace(memory, known_id=max(memory.known_id, int(state.id.max())))
+        known = passes.holders.largest(int(state.id.max(initial=-1)))   # (the same on every rank)
+        memory = replace(memory, known_id=max(memory.known_id, known))
         if self.explicit:
-            last_change, ringing = watch_ringing(state, np.where(state.movable[:, None], dv, 0.0), memory.last_change,
-                                                 memory.ringing, self.rho, step, time)
-            memory = replace(memory, last_change=last_change, ringing=ringing)
+            memory = watch_ringing(state, np.where(state.movable[:, None], dv, 0.0), memory, self.rho, step, time,
+                                   passes.holders)
         return Exchange(fluid, force, torque, memory)
 
 

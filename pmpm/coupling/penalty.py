@@ -24,13 +24,12 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 
 import numpy as np
-from mpi4py import MPI
-
 from ..arrays import cross, sum_rows
 from ..fluid import FluidState
 from ..particles import ParticleState
+from .holders import Holders
 from .locate import CellLocator, Touched, alpha_per_cell, shared_smooth
-from .memory import CouplingMemory
+from .memory import CouplingMemory, by_id
 from .sums import cell_targets, fluid_sums, largest_slip
 from .update import Exchange, External, damped_change, damped_guess, hydrodynamic_force, watch_ringing
 
@@ -66,6 +65,7 @@ class PenaltyPasses:
     relief : (n, 3) the drag correction's relief force on each particle (N), or None
     relief_source : (n_owned, 3) the same force put into the fluid around the particles (N/ρ per cell),
         or None
+    holders : where the per-particle sums meet (``holders.Holders``)
     """
 
     touched: Touched
@@ -84,6 +84,7 @@ class PenaltyPasses:
     exchanged: np.ndarray | None = None
     relief: np.ndarray | None = None
     relief_source: np.ndarray | None = None
+    holders: Holders | None = None
 
 
 class PenaltyForcing:
@@ -113,8 +114,9 @@ class PenaltyForcing:
         return self.locator.locate(state)
 
     def begin(self, state: ParticleState, touched: Touched, fluid: FluidState, memory: CouplingMemory,
-              dt: float) -> tuple[PenaltyPasses, FluidState]:
+              dt: float, holders: Holders | None = None) -> tuple[PenaltyPasses, FluidState]:
         """Collective. The step's rates and the fluid momentum under each particle at its start.
+        ``holders``: where the per-particle sums meet (default: every rank holds every particle).
 
         The fluid inside a moving particle is a control volume that moves with it, so its momentum
         change includes what the particle's advance covered and uncovered (Reynolds transport): the
@@ -128,15 +130,16 @@ class PenaltyForcing:
         speeds up: an upper bound, since diffusion to the neighbours and ΔP lower it, so that the
         passes converge monotonically) hold for the whole step."""
         n_owned = self.mesh.n_owned_cells
+        holders = holders if holders is not None else Holders.everywhere(self.comm, len(state))
         p, c = touched.particle, touched.cell
         offset = self.mesh.cell_center[c] - state.x[p]
-        speed = largest_slip(self.comm, len(state), p, c, offset, fluid.u, state.v, state.omega)
+        speed = largest_slip(holders, len(state), p, c, offset, fluid.u, state.v, state.omega)
         kappa = self.penalty_rates(touched, speed)
         if self.correction is not None:   # the extra rate acts on the fluid share of the particle's cells
             total = alpha_per_cell(touched, n_owned)[c]
             kappa = kappa + self.correction.rates(state, memory)[p] * (1.0 - np.minimum(total, 1.0))
         under_mass = self.rho * shared_smooth(touched, n_owned) * self.mesh.cell_volume[c]
-        internal_start, under_scale = self.fluid_under(state, touched, offset, fluid.u, under_mass)[:2]
+        internal_start, under_scale = self.fluid_under(state, touched, offset, fluid.u, under_mass, holders)[:2]
         volume = self.rho * self.mesh.cell_volume[c]
         kappa_cell = np.bincount(c, kappa, minlength=n_owned)[c]
         # one-way: the particle takes what a local implicit penalty would exchange
@@ -147,23 +150,23 @@ class PenaltyForcing:
         # and rang, growing ×3 a step, once the blockage rate made K and K_o tens (a settling bed at
         # dt = 1 ms; docs/coupling.md, "Dense suspensions")
         others = (kappa_cell - kappa) * dt if self.two_way else 0.0
-        response, response_spin = fluid_sums(self.comm, len(state), p, c, offset, fluid.u,
+        response, response_spin = fluid_sums(holders, len(state), p, c, offset, fluid.u,
                                              volume * kappa * dt * (1.0 + others) / (1.0 + kappa_cell * dt))[:2]
         if memory.under_id is not None:   # particles new to the flow keep the fluid under them now
-            known_ids, known, centre = memory.under_id, memory.under_momentum, memory.under_centre
-            position = np.minimum(np.searchsorted(known_ids, state.id), max(len(known_ids) - 1, 0))
-            same = (known_ids[position] == state.id) if len(known_ids) else np.zeros(len(state), bool)
-            start = known[position[same]].copy()
+            position, same = by_id(memory.under_id, state.id)
+            start = memory.under_momentum[position[same]].copy()
             # its moment about where the centre is now: L' = L − (x' − x) × P
-            start[:, 3:] -= np.cross(state.x[same] - centre[position[same]], start[:, :3])
+            start[:, 3:] -= np.cross(state.x[same] - memory.under_centre[position[same]], start[:, :3])
             internal_start[same] = start
+            holders.from_owners(internal_start)   # (a new ghost here remembers nothing; its owner does)
         relief = relief_source = None
         if self.correction is not None:
-            relief, relief_source = self.relief(state, touched, memory)
+            relief, relief_source = self.relief(state, touched, memory, holders)
         return PenaltyPasses(touched, offset, kappa, under_mass, under_scale, internal_start, volume * rate, response,
-                             response_spin, state.v, state.omega, relief=relief, relief_source=relief_source), fluid
+                             response_spin, state.v, state.omega, relief=relief, relief_source=relief_source,
+                             holders=holders), fluid
 
-    def relief(self, state: ParticleState, touched: Touched, memory: CouplingMemory):
+    def relief(self, state: ParticleState, touched: Touched, memory: CouplingMemory, holders: Holders):
         """Collective. The drag correction's relief (``correction.py``): the force on each particle
         (n, 3) N, and the opposite force on the fluid around it, (n_owned, 3) per cell (divided by ρ,
         as the momentum equations' right-hand sides), shared among the particle's cells by their
@@ -173,13 +176,12 @@ class PenaltyForcing:
         relief = self.correction.relief(state, memory)
         if relief is None:
             return None, None
+        holders.from_owners(relief)
         n_owned = self.mesh.n_owned_cells
         p, c = touched.particle, touched.cell
         under = np.bincount(c, touched.smooth, minlength=n_owned)[c]
         outside = self.mesh.cell_volume[c] * np.maximum(1.0 - under, 0.0)
-        total = np.bincount(p, outside, minlength=len(state))
-        if self.comm.size > 1:
-            self.comm.Allreduce(MPI.IN_PLACE, total, op=MPI.SUM)
+        total = holders.sum(np.bincount(p, outside, minlength=len(state)).astype(float))
         relief = np.where((total > 0.0)[:, None], relief, 0.0)
         share = outside / np.where(total > 0.0, total, 1.0)[p]
         return relief, sum_rows(c, -share[:, None] * relief[p] / self.rho, n_owned)
@@ -225,7 +227,8 @@ class PenaltyForcing:
         motion, as the paper's single patch does.) ``u_star`` is returned unchanged, with no source
         for the next solve: the penalty is already in it (two-way) or the fluid is not forced (one-way)."""
         internal, _, exchanged = self.fluid_under(state, passes.touched, passes.offset, u_star, passes.under_mass,
-                                                  passes.exchange_weight, passes.guess_v, passes.guess_omega)
+                                                  passes.holders, passes.exchange_weight, passes.guess_v,
+                                                  passes.guess_omega)
         passes = replace(passes, solved_v=passes.guess_v, solved_omega=passes.guess_omega, exchanged=exchanged)
         if self.explicit:
             return u_star, None, passes
@@ -246,10 +249,11 @@ class PenaltyForcing:
         exchanged = passes.exchanged
         if self.two_way:
             internal_end, _, exchanged = self.fluid_under(state, passes.touched, passes.offset, fluid.u,
-                                                          passes.under_mass, passes.exchange_weight, passes.solved_v,
-                                                          passes.solved_omega)
+                                                          passes.under_mass, passes.holders, passes.exchange_weight,
+                                                          passes.solved_v, passes.solved_omega)
         else:
-            internal_end = self.fluid_under(state, passes.touched, passes.offset, fluid.u, passes.under_mass)[0]
+            internal_end = self.fluid_under(state, passes.touched, passes.offset, fluid.u, passes.under_mass,
+                                            passes.holders)[0]
         order = np.argsort(state.id)
         impulse = with_relief(exchanged + internal_end - passes.internal_start, passes.relief, dt)
         m, inertia = state.mass, state.inertia
@@ -267,9 +271,8 @@ class PenaltyForcing:
             rate, relief, target = self.corrected_rates(state, passes, fluid.u, v, force, dt, memory)
             memory = replace(memory, correction_rate=rate, correction_relief=relief, under_target=target[order])
         if self.explicit:
-            last_change, ringing = watch_ringing(state, np.where(state.movable[:, None], dv, 0.0), memory.last_change,
-                                                 memory.ringing, self.rho, step, time)
-            memory = replace(memory, last_change=last_change, ringing=ringing)
+            memory = watch_ringing(state, np.where(state.movable[:, None], dv, 0.0), memory, self.rho, step, time,
+                                   passes.holders)
         return Exchange(fluid, force, torque, memory)
 
     def corrected_rates(self, state: ParticleState, passes: PenaltyPasses, u: np.ndarray, v: np.ndarray,
@@ -289,12 +292,11 @@ class PenaltyForcing:
         kappa_cell = np.bincount(c, passes.kappa, minlength=n_owned)[c]
         along = np.einsum("ij,ij->i", u[c] - rigid, superficial[p])
         share = self.rho * self.mesh.cell_volume[c] * (1.0 - np.minimum(alpha[c], 1.0)) * along / (1 + kappa_cell * dt)
-        sums = np.zeros((3, len(state)))   # the sensitivity along U_s, and the particle's cell size (α-weighted)
-        sums[0] = np.bincount(p, share, minlength=len(state))
-        sums[1] = np.bincount(p, touched.alpha * self.locator.h[c], minlength=len(state))
-        sums[2] = np.bincount(p, touched.alpha, minlength=len(state))
-        if self.comm.size > 1:
-            self.comm.Allreduce(MPI.IN_PLACE, sums, op=MPI.SUM)
+        n = len(state)   # the sensitivity along U_s, and the particle's cell size (α-weighted)
+        sums = passes.holders.sum(np.stack([np.bincount(p, share, minlength=n),
+                                            np.bincount(p, touched.alpha * self.locator.h[c], minlength=n),
+                                            np.bincount(p, touched.alpha, minlength=n)], axis=1).astype(float))
+        sums = sums.T
         h = sums[1] / np.maximum(sums[2], np.finfo(float).tiny)
         target, direction, relievable = self.correction.target(state, eps, superficial, h)
         target *= np.minimum(1.0, 1.0 / passes.under_scale)    # the share of a sphere cut by a symmetry plane
@@ -303,19 +305,20 @@ class PenaltyForcing:
         rate = np.zeros(n_pools) if memory.correction_rate is None else memory.correction_rate
         relief = np.zeros(n_pools) if memory.correction_relief is None else memory.correction_relief
         rate, relief = self.correction.update(state, rate, relief, eps, target, direction, relievable, force,
-                                              sensitivity, dt)
+                                              sensitivity, dt, passes.holders)
         return rate, relief, (relievable * target)[:, None] * direction
 
     def fluid_under(self, state: ParticleState, touched: Touched, offset: np.ndarray, u: np.ndarray,
-                    mass: np.ndarray, weight: np.ndarray | None = None, v: np.ndarray | None = None,
+                    mass: np.ndarray, holders: Holders, weight: np.ndarray | None = None, v: np.ndarray | None = None,
                     omega: np.ndarray | None = None):
         """Collective. The momentum of the fluid under each particle, (n, 6): Σ m u over its pairs
         (``mass`` m = ρ f V, f the smooth fraction) and its moment about the centre, scaled to the
         sphere's own volume (Σ f V wobbles by ~1e-3 as the sphere moves, which in a uniform stream
         gave a particle an impulse out of nothing); that scale (n,); and, with a ``weight`` per pair
         and the particles' motion ``v``, ``omega``, the exchange Σ weight (u − U) with its moment
-        (n, 6) (else None). ``offset`` (m, 3): from the particle's centre to each pair's cell centre."""
-        covered, _, carried, exchanged = fluid_sums(self.comm, len(state), touched.particle, touched.cell, offset, u,
+        (n, 6) (else None). ``offset`` (m, 3): from the particle's centre to each pair's cell centre;
+        ``holders``: where the sums meet."""
+        covered, _, carried, exchanged = fluid_sums(holders, len(state), touched.particle, touched.cell, offset, u,
                                                     mass, weight, v, omega)
         scale = self.rho * state.volume / np.maximum(covered, np.finfo(float).tiny)
         return scale[:, None] * carried, scale, exchanged

@@ -1,12 +1,11 @@
-"""Sums over the (particle, cell) pairs, compiled (numba): per particle over all ranks in one
-Allreduce (``fluid_sums``, ``largest_slip``), or per owned cell (``cell_targets``). Each is one pass
+"""Sums over the (particle, cell) pairs, compiled (numba): per particle over the ranks that hold
+it (``fluid_sums``, ``largest_slip``; ``holders.Holders``), or per owned cell (``cell_targets``). Each is one pass
 over the pairs, the rigid motion U = v + ω × r of a pair computed in place: the numpy version's
 gathers, cross products and bincounts over (pairs, 3) temporaries were most of the penalty's time
 in a dense bed (docs/coupling.md)."""
 from __future__ import annotations
 
 import numpy as np
-from mpi4py import MPI
 from numba import njit
 
 
@@ -49,13 +48,14 @@ def _fluid_sums(n, particle, cell, offset, u, mass, weight, v, omega):
     return out
 
 
-def fluid_sums(comm, n: int, particle: np.ndarray, cell: np.ndarray, offset: np.ndarray, u: np.ndarray,
+def fluid_sums(holders, n: int, particle: np.ndarray, cell: np.ndarray, offset: np.ndarray, u: np.ndarray,
                mass: np.ndarray, weight: np.ndarray | None = None, v: np.ndarray | None = None,
                omega: np.ndarray | None = None):
-    """Collective. Per particle, summed over its pairs on all ranks in one Allreduce.
+    """Collective. Per particle, summed over its pairs on the ranks that hold it in one exchange.
 
     Parameters
     ----------
+    holders : ``holders.Holders``, how the sums meet
     n : number of particles
     particle, cell : (m,) each pair's particle and owned cell
     offset : (m, 3) r, from the particle's centre to the cell centre (m)
@@ -73,9 +73,7 @@ def fluid_sums(comm, n: int, particle: np.ndarray, cell: np.ndarray, offset: np.
     with_slip = weight is not None
     if not with_slip:
         weight, v, omega = np.zeros(0), np.zeros((0, 3)), np.zeros((0, 3))
-    sums = _fluid_sums(n, particle, cell, offset, u, mass, weight, v, omega)
-    if comm.size > 1:
-        comm.Allreduce(MPI.IN_PLACE, sums, op=MPI.SUM)
+    sums = holders.sum(_fluid_sums(n, particle, cell, offset, u, mass, weight, v, omega))
     return sums[:, 0], sums[:, 1], sums[:, 2:8], (sums[:, 8:14] if with_slip else None)
 
 
@@ -89,13 +87,10 @@ def _largest_slip(n, particle, cell, offset, u, v, omega):
     return speed
 
 
-def largest_slip(comm, n: int, particle, cell, offset, u, v, omega) -> np.ndarray:
-    """Collective. (n,) the largest |u − U| over each particle's pairs on all ranks (arguments as
-    ``fluid_sums``)."""
-    speed = _largest_slip(n, particle, cell, offset, u, v, omega)
-    if comm.size > 1:
-        comm.Allreduce(MPI.IN_PLACE, speed, op=MPI.MAX)
-    return speed
+def largest_slip(holders, n: int, particle, cell, offset, u, v, omega) -> np.ndarray:
+    """Collective. (n,) the largest |u − U| over each particle's pairs on the ranks that hold it
+    (arguments as ``fluid_sums``)."""
+    return holders.max(_largest_slip(n, particle, cell, offset, u, v, omega))
 
 
 @njit(cache=True)

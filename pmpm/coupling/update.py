@@ -11,14 +11,15 @@ impulse they took over dt). ``[coupling] update``:
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from ..errors import NumericalError
 from ..fluid import FluidState
 from ..particles import ParticleState
-from .memory import CouplingMemory
+from ..parallel import agree
+from .memory import CouplingMemory, by_id
 
 
 @dataclass(frozen=True)
@@ -92,23 +93,29 @@ def hydrodynamic_force(state: ParticleState, external: External, dv: np.ndarray,
     return force, torque
 
 
-def watch_ringing(state: ParticleState, change: np.ndarray, last_change: np.ndarray | None,
-                  ringing: np.ndarray | None, fluid_density: float, step: int, time: float):
-    """The explicit update's watchdog: a particle whose velocity change (n, 3) flips sign and grows
-    4 steps running rings (the light-particle instability): NumericalError. Returns the new
-    (last_change, ringing) for the next step (both reset when the particles changed)."""
-    n = len(state)
-    if last_change is None or len(last_change) != n:
-        return change, np.zeros(n, np.int64)
-    size, before = np.linalg.norm(change, axis=1), np.linalg.norm(last_change, axis=1)
-    flips = np.einsum("ij,ij->i", change, last_change) < 0
+def watch_ringing(state: ParticleState, change: np.ndarray, memory: CouplingMemory, fluid_density: float,
+                  step: int, time: float, holders) -> CouplingMemory:
+    """Collective. The explicit update's watchdog: a particle whose velocity change (n, 3) flips sign
+    and grows 4 steps running rings (the light-particle instability): NumericalError on every rank.
+    Returns ``memory`` with this step's changes and counts, by id, for the next step."""
+    position, known = by_id(memory.ringing_id, state.id)
+    last = memory.last_change[position] if known.any() else np.zeros_like(change)
+    count = memory.ringing[position] if known.any() else np.zeros(len(state), np.int64)
+    size, before = np.linalg.norm(change, axis=1), np.linalg.norm(last, axis=1)
+    flips = known & (np.einsum("ij,ij->i", change, last) < 0)
     growing = flips & (size > 1.5 * before) & (size > 1e-9)
-    ringing = np.where(growing, ringing + 1, 0)
+    ringing = np.where(growing, count + 1, 0)
+    error = None
     if (ringing >= 4).any():
         i = int(np.argmax(ringing))
-        raise NumericalError(
+        error = NumericalError(
             f"step {step}, t = {time:.6g} s: particle {state.id[i]} (density ratio "
             f"{state.density[i] / fluid_density:.3g}) rings: its velocity change flips sign and grows every "
             "step, the explicit coupling instability of light particles; use [coupling] update = "
             "\"implicit\" (the default), or a smaller [run] dt")
-    return change, ringing
+    if holders.halo is not None:   # (where every rank holds every particle, every rank sees it)
+        agree(holders.comm, error)
+    elif error is not None:
+        raise error
+    order = np.argsort(state.id)
+    return replace(memory, ringing_id=state.id[order], last_change=change[order], ringing=ringing[order])
