@@ -99,7 +99,7 @@ def minimum_fluidization(rows: list[dict]) -> list[dict]:
     out = []
     wen_yu = float(wen_yu_minimum_fluidization(RHO_P, RHO_F, MU, DIAMETER, G))
     for cpd in sorted({r["cells_per_diameter"] for r in rows}):
-        for correction in CORRECTIONS:
+        for correction in sorted({r["correction"] for r in rows}, key=lambda c: (c != "off", c)):
             sweep = sorted((r for r in rows if r["cells_per_diameter"] == cpd and r["correction"] == correction),
                            key=lambda r: r["reynolds"])
             if len(sweep) < 2:
@@ -160,8 +160,9 @@ def plot(ergun_rows: list[dict], fluidized_rows: list[dict]) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     figure, (left, right) = plt.subplots(1, 2, figsize=(10, 4))
+    corrections = sorted({r["correction"] for r in ergun_rows + fluidized_rows}, key=lambda c: (c != "off", c))
     for cpd, colour in zip((3, 4, 6), ("C0", "C1", "C2")):
-        for correction, style in zip(CORRECTIONS, ("o-", "s--")):
+        for correction, style in zip(corrections, ("o-", "s--", "^:", "v-.")):
             rows = [r for r in ergun_rows if r["cells_per_diameter"] == cpd and r["correction"] == correction]
             if rows:
                 left.plot([r["reynolds"] for r in rows], [r["ratio"] for r in rows], style, color=colour,
@@ -175,7 +176,7 @@ def plot(ergun_rows: list[dict], fluidized_rows: list[dict]) -> None:
         n = float(richardson_zaki_exponent(RHO_F * u_t * DIAMETER / MU))
         speeds = np.linspace(0.03, 0.15, 50)
         right.plot(speeds, richardson_zaki_voidage(speeds, u_t, n), "k-", label="Richardson & Zaki")
-        for correction, marker in zip(CORRECTIONS, ("o", "s")):
+        for correction, marker in zip(corrections, ("o", "s", "^", "v")):
             rows = [r for r in fluidized_rows if r["correction"] == correction]
             right.plot([r["speed"] for r in rows], [r["voidage"] for r in rows], marker,
                        label=f"pmpm, 3 cells/d, correction {correction}")

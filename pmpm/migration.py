@@ -62,9 +62,11 @@ def exit_triangles(case, mesh) -> tuple:
     return triangles[:, 0], triangles[:, 1], triangles[:, 2], normal
 
 
-def crossed_exits(exits: tuple, particles: ParticleState, dt: float) -> np.ndarray:
+def crossed_exits(exits: tuple, particles: ParticleState, dt: float, inside: np.ndarray | None = None) -> np.ndarray:
     """Local. (n,) bool: the particles whose centre crossed an exit triangle (``exit_triangles``) in
     the last step of ``dt``: those within their travel of an exit, on its far side from the domain.
+    ``inside`` (n,) bool, optional: particles known to be inside the domain (e.g. in this rank's
+    cells), which are not tested.
 
     Where ranks own particles, this replaces the point location in every rank's cells (a particle's
     rank is not the rank of its cell): a particle inside the domain leaves only through a boundary
@@ -72,12 +74,13 @@ def crossed_exits(exits: tuple, particles: ParticleState, dt: float) -> np.ndarr
     a, b, c, normal = exits
     x = particles.x
     outside = np.zeros(len(x), bool)
-    if len(a) == 0 or len(x) == 0:
+    if len(a) == 0 or len(x) == 0 or (inside is not None and inside.all()):
         return outside
     travel = 1.5 * np.linalg.norm(particles.v, axis=1) * dt + 1e-9 * particles.radius
     corners = np.concatenate([a, b, c])
     low, high = corners.min(axis=0), corners.max(axis=0)
-    near = np.flatnonzero(((x >= low - travel[:, None]) & (x <= high + travel[:, None])).all(axis=1))
+    near = ((x >= low - travel[:, None]) & (x <= high + travel[:, None])).all(axis=1)
+    near = np.flatnonzero(near if inside is None else near & ~inside)
     if len(near) == 0:
         return outside
     p = np.repeat(near, len(a))
@@ -94,18 +97,18 @@ def crossed_exits(exits: tuple, particles: ParticleState, dt: float) -> np.ndarr
 
 
 def migrate_particles(comm, exits: tuple, exit_faces, state: RunState, start: np.ndarray, dt: float,
-                      rebalance: bool = True) -> RunState:
+                      rebalance: bool = True, inside: np.ndarray | None = None) -> RunState:
     """Collective. Where ranks own particles, stage 8 in one gather of counts and (when a particle
     changed rank) one exchange: the particles that crossed an exit are removed (``crossed_exits``),
     the ones whose centre entered another rank's box go to it, with their last hydrodynamic force
     and the contact memory of the contacts whose lower-id particle they are; when a rank owns more
     than ``ownership.IMBALANCE`` × the mean, the boxes are bisected again first (with ``rebalance``;
-    in a flow the boxes are the mesh's, and stay). A particle whose
+    in a flow the boxes are the mesh's, and stay). ``inside``: as in ``crossed_exits``. A particle whose
     state is not finite stops the run on every rank (NumericalError). The removed are counted by
     the boundary their path from ``start`` (the step's first positions, rows as the particles')
     crossed (``exit_faces``: ``pmpm.exits.ExitFaces``, or None), summed over ranks."""
     partition = state.partition
-    outside = crossed_exits(exits, state.particles, dt)
+    outside = crossed_exits(exits, state.particles, dt, inside)
     through = (exit_faces.count(start[outside], state.particles.x[outside], {})
                if exit_faces is not None and outside.any() else {})
     particles = state.particles.without(outside)

@@ -241,3 +241,14 @@ def di_felice_drag_factor(solid_fraction, reynolds):
     re = np.maximum(np.asarray(reynolds, float), 1e-12)
     chi = 3.7 - 0.65 * np.exp(-0.5 * (1.5 - np.log10(re)) ** 2)
     return (0.63 + 4.8 / np.sqrt(re)) ** 2 * re / 24.0 * eps ** -chi
+
+
+def di_felice_standard_drag_factor(solid_fraction, reynolds):
+    """Di Felice's voidage function on the standard drag curve: ``di_felice_drag_factor`` with the
+    lone sphere's C_D from ``standard_drag_coefficient`` (Schiller–Naumann, Clift, Grace & Weber
+    from Re 800) instead of Dallavalle's, which lies 7, 11, 13, 20 and 30 % above it at Re 1, 10,
+    100, 300 and 1000: C_D Re/24 ε^−χ."""
+    eps = 1.0 - np.asarray(solid_fraction, float)
+    re = np.maximum(np.asarray(reynolds, float), 1e-12)
+    chi = 3.7 - 0.65 * np.exp(-0.5 * (1.5 - np.log10(re)) ** 2)
+    return standard_drag_coefficient(re) * re / 24.0 * eps ** -chi

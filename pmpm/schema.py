@@ -103,11 +103,12 @@ SCHEMA: dict[str, tuple[Key, ...]] = {
         Key("update", "str", "implicit", choices=("implicit", "explicit"),
             help="implicit: stable for light particles (measured to ρp/ρf = 0.3); explicit: the paper's, "
                  "rings below ρp/ρf ≈ 0.5–1.2 (docs/coupling.md)"),
-        Key("drag_correction", "str", "off", choices=("off", "di_felice", "beetstra"),
-            help="particles on a few cells per diameter: bring their drag to Di Felice's (1994) or Beetstra et "
-                 "al.'s (2007) correlation at the local voidage, raising it where the resolved drag falls short "
-                 "(dense beds) and taking off the excess above Re = (d/h)², where the boundary layer is thinner "
-                 "than a cell (penalty forcing, two-way; docs/coupling.md, \"Dense suspensions\")"),
+        Key("drag_correction", "str", "off", choices=("off", "di_felice", "di_felice_standard", "beetstra"),
+            help="particles on a few cells per diameter: bring their drag to Di Felice's (1994) correlation, "
+                 "the same on the standard drag curve of a lone sphere (di_felice_standard), or Beetstra et al.'s "
+                 "(2007), at the local voidage, raising it where the resolved drag falls short (dense beds) and "
+                 "taking off the excess above Re = (d/h)², where the boundary layer is thinner than a cell "
+                 "(penalty forcing, two-way; docs/coupling.md, \"Dense suspensions\")"),
         Key("correction_filter", "float", None, ">0", unit="m",
             help="drag_correction: the width of the box over which each particle's voidage and slip are averaged "
                  "(default: 3 × the largest particle diameter of the case)"),

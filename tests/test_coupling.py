@@ -168,6 +168,17 @@ def test_light_particle_explicit_rings_implicit_is_stable(tmp_path):
 
 
 @pytest.mark.mpi
+def test_a_ringing_particle_stops_every_rank(comm, shared_tmp):
+    """The ringing light particle of the test above, far below the cut on 2 ranks, where only the
+    lower rank holds it: every rank stops with the same NumericalError (none waits for the other)."""
+    light = dict(gravity="[0.0, 0.0, -9.81]", dt=0.002, n=12, m=24, H=0.16, mu=0.05,
+                 position="[0.04, 0.04, 0.025]")
+    sim = simulation(comm, shared_tmp, rho_p=300.0, update="explicit", forcing="patch", **light)
+    with pytest.raises(NumericalError, match="particle 0 .*rings"):
+        advance(sim, 60)
+
+
+@pytest.mark.mpi
 @pytest.mark.parametrize("forcing, update", [("penalty", "implicit"), ("patch", "implicit"), ("penalty", "explicit")])
 def test_crossing_the_rank_boundary_same_trajectory(comm, tmp_path, forcing, update):
     """A heavy sphere settling obliquely across the middle of the box: the 2-rank trajectory equals

@@ -10,7 +10,7 @@ when the case is built (``build_forcing``):
 - ``PenaltyForcing`` (default, ``penalty.py``): an implicit penalty solved with the diffusion;
 - ``PatchForcing`` (the paper, ``patch.py``): u ← (1 − α) u + α U after each solve.
 
-The time loop (``pmpm.simulation.flow_stage``) calls, in this order, each a value in, a value out:
+The time loop (``pmpm.flow_stage.flow_stage``) calls, in this order, each a value in, a value out:
 
     touched = forcing.locate(particles)                           local
     passes, fluid = forcing.begin(particles, touched, fluid, memory, dt, holders)

@@ -44,10 +44,11 @@ from __future__ import annotations
 import numpy as np
 from mpi4py import MPI
 
-from ..reference import beetstra_drag_factor, di_felice_drag_factor
+from ..reference import beetstra_drag_factor, di_felice_drag_factor, di_felice_standard_drag_factor
 from .memory import by_id
 
-CORRELATIONS = {"beetstra": beetstra_drag_factor, "di_felice": di_felice_drag_factor}
+CORRELATIONS = {"beetstra": beetstra_drag_factor, "di_felice": di_felice_drag_factor,
+                "di_felice_standard": di_felice_standard_drag_factor}
 RATE_CAP = 1e3    # κ_x dt at most: the cells near the particle move with it to 1e-3
 GAIN = 0.1        # of the one-step gain ε: the force felt responds to κ_x more than S foresees
 RELIEF_CAP = 2.0  # β at most: the coarsest mesh's drag at Re 1000 is about twice the correlation's

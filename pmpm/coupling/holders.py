@@ -4,7 +4,7 @@ Each rank sums over the (particle, cell) pairs of its owned cells only, so a par
 fluid under it, its cells' response and the like are sums over every rank whose cells it touches.
 On one rank, or where every rank holds every particle, those sums meet in an Allreduce over all
 particles. Where ranks own particles (``pmpm.ownership``), a rank holds its own and ghost copies of
-those that reach into its cells (``Halo``, built for the step by ``pmpm.simulation.flow_stage``):
+those that reach into its cells (``Halo``, built for the step by ``pmpm.flow_stage.held_for_the_flow``):
 the sums then meet among the particle's holders only — the ghosts' partial sums go to the owner,
 and the owner's total back to the ghosts — so every holder applies the same update to its copy,
 and no array over every particle of the run exists on any rank.

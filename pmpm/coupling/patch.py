@@ -72,16 +72,16 @@ class PatchForcing:
         would otherwise spend its first step accelerating it. ``holders``: where the per-particle
         sums meet (default: every rank holds every particle)."""
         n_owned = self.mesh.n_owned_cells
+        holders = holders if holders is not None else Holders.everywhere(self.comm, len(state))
         p, c = touched.particle, touched.cell
         alpha = shared_alpha(touched, n_owned)
         r = self.mesh.cell_center[c] - state.x[p]
         fresh = state.id > memory.known_id
-        if fresh.any() and self.two_way:
+        if self.two_way and holders.largest(int(fresh.any())):   # (a collective: every rank, or none)
             pick = fresh[p]
             u = patched(fluid.u, c[pick], alpha[pick],
                         state.v[p[pick]] + np.cross(state.omega[p[pick]], r[pick]), n_owned)
             fluid = replace(fluid, u=self.mesh.update_ghosts(u))
-        holders = holders if holders is not None else Holders.everywhere(self.comm, len(state))
         passes = PatchPasses(touched, alpha, r, self.rho * alpha * self.mesh.cell_volume[c], state.v, state.omega,
                              np.zeros((len(state), 6)), holders)
         return passes, fluid
