@@ -237,10 +237,16 @@ def di_felice_drag_factor(solid_fraction, reynolds):
 
     fitted to fluidization and sedimentation data for Re from 0.01 to 10⁴; it carries Richardson &
     Zaki's expansion (n = χ + 1 at low Re, (χ + 1)/2 at high Re)."""
-    eps = 1.0 - np.asarray(solid_fraction, float)
     re = np.maximum(np.asarray(reynolds, float), 1e-12)
-    chi = 3.7 - 0.65 * np.exp(-0.5 * (1.5 - np.log10(re)) ** 2)
-    return (0.63 + 4.8 / np.sqrt(re)) ** 2 * re / 24.0 * eps ** -chi
+    return (0.63 + 4.8 / np.sqrt(re)) ** 2 * re / 24.0 * di_felice_voidage_function(solid_fraction, re)
+
+
+def di_felice_voidage_function(solid_fraction, reynolds):
+    """Di Felice's factor on a lone sphere's drag at the superficial slip: ε^−χ,
+    χ = 3.7 − 0.65 exp(−(1.5 − log₁₀ Re)²/2)."""
+    eps = 1.0 - np.asarray(solid_fraction, float)
+    chi = 3.7 - 0.65 * np.exp(-0.5 * (1.5 - np.log10(reynolds)) ** 2)
+    return eps ** -chi
 
 
 def di_felice_standard_drag_factor(solid_fraction, reynolds):
@@ -248,7 +254,5 @@ def di_felice_standard_drag_factor(solid_fraction, reynolds):
     lone sphere's C_D from ``standard_drag_coefficient`` (Schiller–Naumann, Clift, Grace & Weber
     from Re 800) instead of Dallavalle's, which lies 7, 11, 13, 20 and 30 % above it at Re 1, 10,
     100, 300 and 1000: C_D Re/24 ε^−χ."""
-    eps = 1.0 - np.asarray(solid_fraction, float)
     re = np.maximum(np.asarray(reynolds, float), 1e-12)
-    chi = 3.7 - 0.65 * np.exp(-0.5 * (1.5 - np.log10(re)) ** 2)
-    return standard_drag_coefficient(re) * re / 24.0 * eps ** -chi
+    return standard_drag_coefficient(re) * re / 24.0 * di_felice_voidage_function(solid_fraction, re)

@@ -40,18 +40,17 @@ class Holders:
     def sum(self, array: np.ndarray) -> np.ndarray:
         """Collective. ``array`` (a row per local particle, C-contiguous), each row summed over the
         particle's holders, in place; returned."""
-        if self.halo is not None:
-            return self.halo.sum_over_holders(array)
-        if self.comm.size > 1:
-            self.comm.Allreduce(MPI.IN_PLACE, array, op=MPI.SUM)
-        return array
+        return self._over_holders(array, MPI.SUM)
 
     def max(self, array: np.ndarray) -> np.ndarray:
         """Collective. As ``sum``, the largest over the holders."""
+        return self._over_holders(array, MPI.MAX)
+
+    def _over_holders(self, array: np.ndarray, op) -> np.ndarray:
         if self.halo is not None:
-            return self.halo.max_over_holders(array)
+            return self.halo.sum_over_holders(array) if op is MPI.SUM else self.halo.max_over_holders(array)
         if self.comm.size > 1:
-            self.comm.Allreduce(MPI.IN_PLACE, array, op=MPI.MAX)
+            self.comm.Allreduce(MPI.IN_PLACE, array, op=op)
         return array
 
     def from_owners(self, array: np.ndarray) -> np.ndarray:
