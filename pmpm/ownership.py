@@ -25,7 +25,7 @@ from numba import njit
 from .particles import ParticleState
 
 MAX_HOLDERS = 16       # the most ranks that may hold one particle (its owner and its ghosts')
-IMBALANCE = 1.15        # the boxes are bisected again when a rank owns this × the mean number of particles
+IMBALANCE = 1.02        # the boxes are bisected again when a rank owns this × the mean number of particles
 BINS, ROUNDS = 64, 3    # a cut is placed by ROUNDS histograms of BINS bins (to 1/64³ of the particles' extent)
 PARTICLE_FIELDS = tuple(f.name for f in fields(ParticleState))
 
@@ -333,21 +333,22 @@ class Halo:
         if not all(a.ndim == 2 and a.flags.c_contiguous for a in arrays + reference):
             raise ValueError("Halo.merge takes C-contiguous 2-D arrays")
         change = _changes(rows, arrays, reference)
-        received, requests = {}, []
-        for r, at in self.shared_at.items():
-            received[r] = np.empty((len(at), change.shape[1]))
-            requests.append(self.comm.Irecv(received[r], source=r, tag=78))
-        outgoing = [np.ascontiguousarray(change[at]) for at in self.shared_at.values()]
-        requests += [self.comm.Isend(block, dest=r, tag=78) for r, block in zip(self.shared_at, outgoing)]
+        # the other holders' changes side by side in rank order, the rows below this rank's first
+        neighbours = sorted(self.shared_at)
+        at = [self.shared_at[r] for r in neighbours]
+        edges = np.cumsum([0] + [len(positions) for positions in at])
+        received = np.empty((edges[-1], change.shape[1]))
+        requests = [self.comm.Irecv(received[edges[k]:edges[k + 1]], source=r, tag=78)
+                    for k, r in enumerate(neighbours)]
+        # a neighbour holding every shared row (two ranks: always) takes the changes as they are
+        outgoing = [change if len(positions) == len(rows) else np.ascontiguousarray(change[positions])
+                    for positions in at]
+        requests += [self.comm.Isend(block, dest=r, tag=78) for r, block in zip(neighbours, outgoing)]
         self.sent += sum(block.nbytes for block in outgoing)
         MPI.Request.Waitall(requests)
-        total = np.zeros_like(change)
-        for r in sorted([*self.shared_at, self.comm.rank]):
-            if r == self.comm.rank:
-                total += change
-            else:
-                total[self.shared_at[r]] += received[r]
-        _apply_changes(rows, arrays, reference, total, np.ones(0) if split is None else split)
+        below = int(edges[np.searchsorted(neighbours, self.comm.rank)])
+        _apply_merged(rows, arrays, reference, change, received, np.concatenate([np.zeros(0, np.int64), *at]), below,
+                      np.ones(0) if split is None else split)
 
 
 @njit(cache=True)
@@ -368,17 +369,30 @@ def _changes(rows, arrays, reference):
 
 
 @njit(cache=True)
-def _apply_changes(rows, arrays, reference, total, split):
-    """Each array and its reference set, on ``rows``, to reference + the changes ``total`` (as from
-    ``_changes``), divided by ``split`` (per local row; empty: by 1)."""
+def _apply_merged(rows, arrays, reference, change, received, at, below, split):
+    """Each array and its reference set, on ``rows``, to reference + the sum of every holder's
+    change, divided by ``split`` (per local row; empty: by 1). The sum is taken in rank order, so
+    that every holder gets the same bits: the ``received`` rows (at positions ``at`` of ``rows``) of
+    lower ranks (the first ``below``), this rank's ``change``, then the higher ranks'."""
+    total = np.zeros_like(change)
+    width = change.shape[1]
+    for i in range(below):
+        for j in range(width):
+            total[at[i], j] += received[i, j]
+    for i in range(len(change)):
+        for j in range(width):
+            total[i, j] += change[i, j]
+    for i in range(below, len(at)):
+        for j in range(width):
+            total[at[i], j] += received[i, j]
     column = 0
     for k in range(len(arrays)):
         now, before = arrays[k], reference[k]
         for i in range(len(rows)):
             r = rows[i]
             for j in range(now.shape[1]):
-                change = total[i, column + j] if len(split) == 0 else total[i, column + j] / split[r]
-                now[r, j] = before[r, j] = before[r, j] + change
+                step = total[i, column + j] if len(split) == 0 else total[i, column + j] / split[r]
+                now[r, j] = before[r, j] = before[r, j] + step
         column += now.shape[1]
 
 

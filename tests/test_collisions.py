@@ -840,6 +840,12 @@ def test_pair_search_matches_the_direct_test(spread):
     each = rng.uniform(0.0, 0.003, 600) * (rng.random(600) < 0.1)
     close = np.triu(distance <= (radius[:, None] + radius[None]) * (1 + 1e-6) + each[:, None] + each[None], 1)
     assert np.array_equal(candidate_pairs(x, radius, each, kernels().cell_list), np.argwhere(close))
+    # a slow pack with a few particles forty times as fast (they search many cells around them)
+    each = np.full(600, 2e-4)
+    each[rng.choice(600, 5, replace=False)] = 8e-3
+    close = np.triu(distance <= (radius[:, None] + radius[None]) * (1 + 1e-6) + each[:, None] + each[None], 1)
+    assert np.array_equal(candidate_pairs(x, radius, each, kernels().cell_list), np.argwhere(close))
+    assert np.array_equal(candidate_pairs(x, radius, each, kernels().cell_list, around), np.argwhere(close & (chosen[:, None] | chosen[None])))
 
 
 def test_a_dense_step_finds_its_contacts_by_each_particle_s_travel():

@@ -10,9 +10,11 @@ can act, counted once each, by the owner of their lower-id particle). Then:
   act, over all ranks) is a block Gauss–Seidel that conforms to the subdomains
   (Preclik & Rüde 2015): a contact is solved by the rank that owns its lower-id particle (walls:
   the particle's owner), each rank sweeps its contacts in the record's order, and after each
-  sweep every rank holding a particle sends the others the change its sweep made to the
-  particle's velocities, and all set the same merged value (``Halo.merge``: one message each way
-  per pair of ranks sharing particles, per sweep; Jacobi between subdomains, Gauss–Seidel inside).
+  round of ``LOCAL_SWEEPS`` sweeps every rank holding a particle sends the others the change its
+  sweeps made to the particle's velocities, and all set the same merged value (``Halo.merge``: one
+  message each way per pair of ranks sharing particles, per round; Jacobi between subdomains,
+  Gauss–Seidel inside; two sweeps a round, as Tonge et al. 2012 sweep locally between exchanges,
+  halve the exchanges).
   A particle in the contacts of k ranks has 1/k of its mass on each and the changes are averaged
   (mass splitting, Tonge et al. 2012), so the merged velocity is v0 + Σ J / m over every rank's
   impulses. The stopping test, the energy check and the deposition flags meet in reductions, so
@@ -35,7 +37,7 @@ from . import jit
 from .record import ContactMemory
 from .search import find_contacts, wall_arrays
 from .dense import finish, targets
-from .settings import COLD_SWEEPS, ENERGY_TOL, SEARCH_SLACK, SWEEP_TOL, CollisionSettings
+from .settings import COLD_SWEEPS, ENERGY_TOL, LOCAL_SWEEPS, SEARCH_SLACK, SWEEP_TOL, CollisionSettings
 from .solver import Bodies, ContactStep, advance_with_collisions, remove_overlaps
 from .stats import CLAMPS, DEPOSITED, EXTRA, NAMES, SWEEPS, as_dict, new_counters
 from .walls import Walls
@@ -217,12 +219,13 @@ def dense_blocks(halo: Halo, bodies, record, rows, warm_n, warm_t, settings, dt,
 
 def block_sweeps(halo: Halo, rows, contacts, target, mu, bodies, split, lam_n, lam_t, reference, budget: int,
                  tol: float, kernels) -> int:
-    """Collective. Sweeps of this rank's contacts ``rows``, the shadow copies merged after each, until
-    no owned body's contact-point velocity changed by more than ``tol`` (m/s) in a sweep, on any
-    rank, or ``budget`` sweeps; returns the sweeps made (the same on every rank). ``bodies``:
-    (1/m, 1/I, v, ω) with the masses split among the ranks sharing a particle (``split``, per local row). A sweep's test is
-    reduced over the ranks while the next sweep runs (a nonblocking reduction, so no sync of its
-    own): the sweeps stop one sweep after the one that converged."""
+    """Collective. Rounds of ``LOCAL_SWEEPS`` sweeps of this rank's contacts ``rows``, the shadow
+    copies merged after each round, until no owned body's contact-point velocity changed by more
+    than ``tol`` (m/s) in a round, on any rank, or ``budget`` sweeps; returns the sweeps made (the
+    same on every rank). ``bodies``: (1/m, 1/I, v, ω) with the masses split among the ranks sharing
+    a particle (``split``, per local row). A round's test is reduced over the ranks while the next
+    round runs (a nonblocking reduction, so no sync of its own): the rounds stop one round after the
+    one that converged."""
     first, second, normal, r_first, r_second, u_wall = contacts
     inv_m, inv_i, v, w = bodies
     a, b = first[rows], second[rows]
@@ -237,10 +240,11 @@ def block_sweeps(halo: Halo, rows, contacts, target, mu, bodies, split, lam_n, l
     done, pending, largest = 0, None, np.zeros(1)
     saved = np.hstack([v[watched], w[watched]])
     while done < budget:
-        kernels.impulses.sweep_once(rows, inv_kn, inv_kt, first, second, normal, r_first, r_second, u_wall, target,
-                                    mu, inv_m, inv_i, v, w, lam_n, lam_t)
+        for _ in range(min(LOCAL_SWEEPS, budget - done)):
+            kernels.impulses.sweep_once(rows, inv_kn, inv_kt, first, second, normal, r_first, r_second, u_wall,
+                                        target, mu, inv_m, inv_i, v, w, lam_n, lam_t)
+            done += 1
         halo.merge(reference, v, w, split=split)
-        done += 1
         if pending is not None:   # the test of the sweep before this one, reduced meanwhile
             pending.Wait()
             if largest[0] <= tol:
