@@ -7,11 +7,12 @@ The bed of ``bench/contacts.py`` (N spheres, default 100,000, on a lattice 1 % a
 cut into P boxes by ``ownership.bisect`` (in one process: the bisection's reductions over ranks are
 sums of histograms, the same whole), and for each box the ghosts a contact step copies in
 (``Halo``'s rule: within r + r_max + reach of the box) and the particles it shares (the rows of
-its merge per sweep) are counted. Printed per P: the most owned and ghost particles of a rank,
-the bytes a rank sends per step (ghosts once, 170 B each; 48 B per shared particle per sweep, K + 1 merges),
+its merge per round of sweeps) are counted. Printed per P: the most owned and ghost particles of a
+rank, the bytes a rank sends per step (ghosts once, 170 B each; 48 B per shared particle per merge,
+M + 1 merges: M = K / LOCAL_SWEEPS rounds of K sweeps, and the warm start's),
 the neighbours it exchanges with, and a time per step
 
-    t(P) = compute × (owned + ghosts) + (K + 1) × (neighbours × latency + bytes per merge / bandwidth)
+    t(P) = compute × (owned + ghosts) + (M + 1) × (neighbours × latency + bytes per merge / bandwidth)
            + 6 × log2(P) × latency
 
 (compute: µs per particle and step of the engine on one rank, measured by ``bench/contacts.py``;
@@ -29,6 +30,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "bench"))
 from contacts import bed_lattice  # noqa: E402
+from pmpm.collisions.settings import LOCAL_SWEEPS  # noqa: E402
 from pmpm.ownership import bisect  # noqa: E402
 
 
@@ -64,6 +66,7 @@ def main():
     print(f"{'ranks':>6s} {'owned':>8s} {'ghosts':>8s} {'shared':>8s} {'neighbours':>10s} {'kB/step':>9s} "
           f"{'B/owned':>8s} {'model ms/step':>14s} {'speed-up':>9s}")
     one = compute * n / 1000
+    merges = math.ceil(sweeps / LOCAL_SWEEPS)
     for p in ranks:
         partition = bisect(WholeComm(p), state.x)
         owner = partition.owner_of(state.x)
@@ -81,8 +84,8 @@ def main():
         worst = int(np.argmax(owned + ghosts))
         ghost_bytes = 170 * ghosts[worst]   # a ghost's row: the particle's 98 B, its 16 holders, its row
         merge_bytes = 48 * shared_rows[worst]
-        sent = ghost_bytes + (sweeps + 1) * merge_bytes
-        t = (compute * (owned[worst] + ghosts[worst]) + (sweeps + 1) * (neighbours * latency + merge_bytes / (bandwidth * 1e3))
+        sent = ghost_bytes + (merges + 1) * merge_bytes
+        t = (compute * (owned[worst] + ghosts[worst]) + (merges + 1) * (neighbours * latency + merge_bytes / (bandwidth * 1e3))
              + 6 * math.log2(p) * latency) / 1000
         print(f"{p:6d} {owned.max():8d} {ghosts.max():8d} {shared_rows.max():8d} {neighbours:10d} {sent / 1e3:9.1f} "
               f"{sent / owned[worst]:8.0f} {t:14.2f} {one / t:9.1f}", flush=True)
