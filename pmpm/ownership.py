@@ -333,7 +333,7 @@ class Halo:
         if not all(a.ndim == 2 and a.flags.c_contiguous for a in arrays + reference):
             raise ValueError("Halo.merge takes C-contiguous 2-D arrays")
         change = _changes(rows, arrays, reference)
-        # the other holders' changes side by side in rank order, the rows below this rank's first
+        # the other holders' changes in one buffer, in rank order (the lower ranks' rows first)
         neighbours = sorted(self.shared_at)
         at = [self.shared_at[r] for r in neighbours]
         edges = np.cumsum([0] + [len(positions) for positions in at])
@@ -347,7 +347,8 @@ class Halo:
         self.sent += sum(block.nbytes for block in outgoing)
         MPI.Request.Waitall(requests)
         below = int(edges[np.searchsorted(neighbours, self.comm.rank)])
-        _apply_merged(rows, arrays, reference, change, received, np.concatenate([np.zeros(0, np.int64), *at]), below,
+        positions = np.concatenate([np.zeros(0, np.int64), *at])
+        _apply_merged(rows, arrays, reference, change, received, positions, below,
                       np.ones(0) if split is None else split)
 
 

@@ -115,14 +115,16 @@ def _grown(pairs, count):
 @njit(cache=True)
 def _merged(pairs, more, n):
     """Two lists of pairs, the first sorted, as one sorted list."""
-    order = np.argsort(more[:, 0] * n + more[:, 1])
+    key = pairs[:, 0] * n + pairs[:, 1]
+    more = more[np.argsort(more[:, 0] * n + more[:, 1])]
+    more_key = more[:, 0] * n + more[:, 1]
     out = np.empty((len(pairs) + len(more), 2), np.int64)
     i = k = 0
     for at in range(len(out)):
-        if k == len(more) or (i < len(pairs) and pairs[i, 0] * n + pairs[i, 1] < more[order[k], 0] * n + more[order[k], 1]):
+        if k == len(more) or (i < len(pairs) and key[i] < more_key[k]):
             out[at] = pairs[i]
             i += 1
         else:
-            out[at] = more[order[k]]
+            out[at] = more[k]
             k += 1
     return out

@@ -245,7 +245,7 @@ def block_sweeps(halo: Halo, rows, contacts, target, mu, bodies, split, lam_n, l
                                         target, mu, inv_m, inv_i, v, w, lam_n, lam_t)
             done += 1
         halo.merge(reference, v, w, split=split)
-        if pending is not None:   # the test of the sweep before this one, reduced meanwhile
+        if pending is not None:   # the test of the round before this one, reduced meanwhile
             pending.Wait()
             if largest[0] <= tol:
                 break
