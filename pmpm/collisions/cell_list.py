@@ -5,8 +5,9 @@ so every pair of particles within the typical reach lies in the same or in neigh
 each particle checks the 27 cells around its own. O(n) for a pack (a few particles per cell).
 Where the reach is per particle (a dense step: each particle's travel), the typical reach is the
 90th percentile, and the few faster particles ("wide") check as many cells around them as their
-own reach needs, for every partner: a hopper's spheres near the orifice travel ten times as far as
-the bed's, and cells sized by the fastest held three times as many particles. Cells are grown when
+own reach needs, for every partner: otherwise a few fast spheres (at a hopper's orifice) would set
+the size of every cell, and a slow pack's particles would each check several times as many
+neighbours. Cells are grown when
 the particles are spread thinly (at most 8 per particle), so a gas in a large domain costs no more
 than its particles.
 """
@@ -30,7 +31,7 @@ def close_pairs(x, radius, reach, chosen):
         return np.zeros((0, 2), np.int64)
     typical = np.partition(reach, int(TYPICAL * (n - 1)))[int(TYPICAL * (n - 1))]
     wide = reach > typical
-    span_of = 2.0 * radius.max() * (1.0 + CONTACT_TOL) + reach.max()   # + a wide particle's own reach
+    wide_limit = 2.0 * radius.max() * (1.0 + CONTACT_TOL) + reach.max()   # + a wide particle's own reach
     cell = 2.0 * radius.max() * (1.0 + CONTACT_TOL) + 2.0 * typical
     lower = np.empty(3)
     dims = np.empty(3, np.int64)
@@ -66,7 +67,7 @@ def close_pairs(x, radius, reach, chosen):
     for i in range(n):
         h = home[i]
         a, b, c = h // (dims[1] * dims[2]), (h // dims[2]) % dims[1], h % dims[2]
-        span = int(np.ceil((span_of + reach[i]) / cell)) if wide[i] else 1
+        span = int(np.ceil((wide_limit + reach[i]) / cell)) if wide[i] else 1
         begin = count
         for da in range(max(a - span, 0), min(a + span + 1, dims[0])):
             for db in range(max(b - span, 0), min(b + span + 1, dims[1])):
