@@ -167,9 +167,11 @@ def summary(model, state, status: str, seconds: dict) -> dict:
 
 def peak_memory_mb(comm) -> dict:
     """Collective. The largest resident memory (MB) a rank reached so far, and the sum over ranks
-    (``ru_maxrss``: the process's peak, Python, PETSc and MPI included)."""
-    peaks = comm.allgather(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0)   # kB on Linux
-    return {"largest_rank": round(max(peaks), 1), "all_ranks": round(sum(peaks), 1)}
+    (``ru_maxrss``: the process's peak, Python, PETSc and MPI included). Each rank's peak is rounded
+    before the sum, so the sum never exceeds the ranks times the largest as printed."""
+    own = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0   # kB on Linux
+    peaks = [round(peak, 1) for peak in comm.allgather(own)]
+    return {"largest_rank": max(peaks), "all_ranks": round(sum(peaks), 1)}
 
 
 def largest_per_rank(comm, seen: dict) -> dict:
