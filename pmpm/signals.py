@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import signal
 
+import numpy as np
 from mpi4py import MPI
 
 SIGNALS = (signal.SIGTERM, signal.SIGINT)
@@ -12,7 +13,8 @@ SIGNALS = (signal.SIGTERM, signal.SIGINT)
 
 class StopRequests:
     """``with StopRequests() as stops:`` — within the block the signals are caught; ``stops.agreed(comm)``
-    (collective) is the signal number some rank received, or 0."""
+    (collective) is the signal number some rank received, or 0 (and whether a rank is past its
+    wall-time limit)."""
 
     def __init__(self):
         self.received = 0
@@ -36,10 +38,15 @@ class StopRequests:
     def catch(self, number, frame):
         self.received = self.received or number
 
-    def agreed(self, comm) -> int:
-        """Collective. The first signal received on any rank (the largest number if several), or 0."""
-        self.stopping = comm.allreduce(self.received, op=MPI.MAX) if comm.size > 1 else self.received
-        return self.stopping
+    def agreed(self, comm, past_limit: bool = False) -> tuple[int, bool]:
+        """Collective. The first signal received on any rank (the largest number if several), or 0,
+        and whether any rank found itself ``past_limit`` (its wall-time limit: each rank reads its
+        own clock, so they must agree, or one would stop while the others wait for it in a step)."""
+        flags = np.array([self.received, int(past_limit)], np.int64)
+        if comm.size > 1:
+            comm.Allreduce(MPI.IN_PLACE, flags, op=MPI.MAX)
+        self.stopping = int(flags[0])
+        return self.stopping, bool(flags[1])
 
 
 def stop_message(state, signal_number: int, output) -> str:

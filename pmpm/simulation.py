@@ -370,11 +370,12 @@ class Simulation:
                         while next_checkpoint <= time * (1 + 1e-9):
                             next_checkpoint += every
                     progress.update(self.state.step, time, f"  particles {self.state.n_global_particles}")
-                    signal_number = stops.agreed(self.comm)
+                    past_limit = bool(run.wall_time_limit) and wallclock.perf_counter() - started > run.wall_time_limit
+                    signal_number, past_limit = stops.agreed(self.comm, past_limit)
                     if signal_number:
                         stop = Stopped(stop_message(self.state, signal_number, output), signal_number)
                         status = f"stopped by {signal.Signals(signal_number).name}"
-                    elif run.wall_time_limit and wallclock.perf_counter() - started > run.wall_time_limit:
+                    elif past_limit:
                         status = "stopped at the wall-time limit"
                     if status != "completed":
                         writers.write(self.state)

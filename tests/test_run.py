@@ -103,11 +103,11 @@ from mpi4py import MPI
 from pmpm.signals import StopRequests
 before = signal.getsignal(signal.SIGTERM)
 with StopRequests() as stops:   # a run that ends without a stop gives the handlers back
-    assert stops.agreed(MPI.COMM_SELF) == 0
+    assert stops.agreed(MPI.COMM_SELF) == (0, False)
 assert signal.getsignal(signal.SIGTERM) is before
 with StopRequests() as stops:   # this rank's own signal, or another rank's: the ranks stop together
     os.kill(os.getpid(), signal.SIGINT)
-    assert stops.agreed(MPI.COMM_SELF) == signal.SIGINT
+    assert stops.agreed(MPI.COMM_SELF) == (signal.SIGINT, False)
 os.kill(os.getpid(), signal.SIGTERM)   # the SIGTERM sent to every rank reaches this one late
 print("still writing the state")
 """
@@ -224,3 +224,33 @@ def test_a_bug_on_one_rank_takes_every_rank_down_without_hanging(tmp_path):
     result = subprocess.run(command, capture_output=True, text=True, timeout=120, env=subprocess_env())
     assert result.returncode != 0
     assert "a bug on rank 1" in result.stderr
+
+
+CLOCK_AHEAD_ON_RANK_0 = """
+import sys, time, types
+from mpi4py import MPI
+import pmpm.simulation as simulation
+calls = []
+def perf_counter():   # rank 0's clock jumps an hour ahead after a few steps; rank 1's does not
+    calls.append(1)
+    return time.perf_counter() + (3600.0 if MPI.COMM_WORLD.rank == 0 and len(calls) > 8 else 0.0)
+simulation.wallclock = types.SimpleNamespace(perf_counter=perf_counter)
+from pmpm.__main__ import main
+sys.exit(main(sys.argv[1:]))
+"""
+
+
+def test_the_ranks_stop_together_at_the_wall_time_limit(tmp_path):
+    """Each rank reads its own clock: one past [run] wall_time_limit while another is not yet used
+    to stop alone and leave the other waiting in the next step. Rank 0 is made an hour ahead: both
+    ranks stop after the same step, with the summary's status, and the run is not complete."""
+    folder = channel(tmp_path, end_time=0.4, dt=0.004)
+    text = (folder / "case.toml").read_text().replace("output_every = 0.1", "output_every = 0.1\nwall_time_limit = 600.0")
+    (folder / "case.toml").write_text(text)
+    (tmp_path / "ahead.py").write_text(CLOCK_AHEAD_ON_RANK_0)
+    command = mpirun_command(2) + [str(tmp_path / "ahead.py"), str(folder), "--quiet"]
+    result = subprocess.run(command, capture_output=True, text=True, timeout=120, env=subprocess_env())
+    assert result.returncode == 0, result.stderr
+    summary = json.loads((folder / "output" / "summary.json").read_text())
+    assert summary["status"] == "stopped at the wall-time limit"
+    assert 0 < summary["steps"] < 100
