@@ -21,17 +21,23 @@ class ExitFaces:
 
     triangles : (m, 3, 3) vertex coordinates (m); boundary : (m,) index into ``names``
     names : the mesh's boundary names
+    lower, upper : (m, 3) each triangle's box, grown by a millionth of the mesh's extent (m)
     """
 
     triangles: np.ndarray
     boundary: np.ndarray
     names: tuple[str, ...]
+    lower: np.ndarray
+    upper: np.ndarray
 
     @classmethod
     def of_mesh(cls, mesh) -> "ExitFaces":
         """Collective. The boundary triangles of ``mesh``."""
         triangles, boundary, _ = mesh.boundary_triangles(mesh.boundary_names)
-        return cls(np.reshape(triangles, (-1, 3, 3)), np.asarray(boundary, np.int64), tuple(mesh.boundary_names))
+        triangles = np.reshape(triangles, (-1, 3, 3))
+        pad = 1e-6 * float(np.ptp(triangles.reshape(-1, 3), axis=0).max()) if len(triangles) else 0.0
+        return cls(triangles, np.asarray(boundary, np.int64), tuple(mesh.boundary_names),
+                   triangles.min(axis=1, initial=np.inf) - pad, triangles.max(axis=1, initial=-np.inf) + pad)
 
     def nearest(self, points: np.ndarray) -> np.ndarray:
         """(k,) index into ``names`` of the boundary nearest to each point (k, 3) (m)."""
@@ -56,13 +62,16 @@ class ExitFaces:
         to ``end`` (k, 3), outside, crosses first; the nearest to ``end`` where it crosses none."""
         start, end = np.asarray(start, float).reshape(-1, 3), np.asarray(end, float).reshape(-1, 3)
         out = np.full(len(start), -1, np.int64)
-        m = len(self.triangles)
-        if m == 0:
+        if len(self.triangles) == 0 or len(start) == 0:
             return np.zeros(len(start), np.int64)
-        a = self.triangles[:, 0]
-        e1, e2 = self.triangles[:, 1] - a, self.triangles[:, 2] - a
-        per_chunk = max(1, ROWS_PER_CHUNK // m)
-        for first in range(0, len(start), per_chunk):
+        # only the faces whose box meets the paths' box (a hopper's orifice, not the whole wall)
+        low, high = np.minimum(start, end).min(axis=0), np.maximum(start, end).max(axis=0)
+        near = np.flatnonzero(((self.lower <= high) & (self.upper >= low)).all(axis=1))
+        triangles, boundary, m = self.triangles[near], self.boundary[near], len(near)
+        a = triangles[:, 0]
+        e1, e2 = triangles[:, 1] - a, triangles[:, 2] - a
+        per_chunk = max(1, ROWS_PER_CHUNK // max(m, 1))
+        for first in range(0, len(start) if m else 0, per_chunk):
             s, d = start[first:first + per_chunk, None, :], (end - start)[first:first + per_chunk, None, :]
             # Möller–Trumbore: s + t d = a + u e1 + v e2, 0 ≤ t ≤ 1, u, v ≥ 0, u + v ≤ 1
             p = np.cross(d, e2)
@@ -79,7 +88,7 @@ class ExitFaces:
             nearest_hit = np.argmin(t, axis=1)
             any_hit = np.isfinite(t[np.arange(len(t)), nearest_hit])
             rows = first + np.flatnonzero(any_hit)
-            out[rows] = self.boundary[nearest_hit[any_hit]]
+            out[rows] = boundary[nearest_hit[any_hit]]
         missed = out < 0
         out[missed] = self.nearest(end[missed])
         return out

@@ -8,7 +8,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from .collisions import ContactMemory, closest_points_on_triangles
+from .collisions import ContactMemory, jit
 from .collisions.walls import particles_bounce
 from .errors import NumericalError
 from .ownership import IMBALANCE, bisect, exchange_groups, particle_rows, particles_of
@@ -83,16 +83,10 @@ def crossed_exits(exits: tuple, particles: ParticleState, dt: float, inside: np.
     near = np.flatnonzero(near if inside is None else near & ~inside)
     if len(near) == 0:
         return outside
-    p = np.repeat(near, len(a))
-    k = np.tile(np.arange(len(a)), len(near))
-    q, _ = closest_points_on_triangles(x[p], a[k], b[k], c[k])
-    distance = np.linalg.norm(x[p] - q, axis=1)
-    order = np.lexsort((distance, p))
-    first = np.ones(len(order), bool)
-    first[1:] = p[order][1:] != p[order][:-1]
-    closest = order[first]                        # each near particle's closest exit triangle
-    beyond = np.einsum("ij,ij->i", x[p[closest]] - q[closest], normal[k[closest]]) < 0
-    outside[p[closest][beyond & (distance[closest] <= travel[p[closest]])]] = True
+    face, q = jit.kernels().contact_times.nearest_faces(x[near], a, b, c)   # each one's closest exit triangle
+    offset = x[near] - q
+    beyond = np.einsum("ij,ij->i", offset, normal[face]) < 0
+    outside[near[beyond & (np.linalg.norm(offset, axis=1) <= travel[near])]] = True
     return outside
 
 

@@ -50,6 +50,8 @@ def pair_contacts(bodies, search_reach, reach: float, dt: float, kernels, around
     within ``reach``); returns pairs, keep, acts, counted (acts on the owner of ``first``),
     normal, gap, time."""
     n = len(bodies.radius) - 1
+    if owned is not None and around is None:   # a pair of two ghosts is another rank's
+        around = np.flatnonzero(owned)
     pairs = candidate_pairs(bodies.x[:n], bodies.radius[:n], search_reach, kernels.cell_list, around)
     keep, acts, normal, gap, time = kernels.narrow.pair_contacts(pairs[:, 0], pairs[:, 1], bodies.x, bodies.v,
                                                                  bodies.radius, bodies.free, reach, dt)
