@@ -1,24 +1,25 @@
 """DEM-only hopper discharge (no flow), pmpm against LIGGGHTS on the same work.
 
-    OMP_NUM_THREADS=1 .venv/bin/python bench/hopper.py [N [SIM_TIME [DT]]] [--ranks 1,2] [--no-peer]
-    # defaults: 10000 particles, 1.0 s, 2e-3 s, 1 and 2 ranks, LIGGGHTS too
+    OMP_NUM_THREADS=1 .venv/bin/python bench/hopper.py [N [SIM_TIME [DT]]] [--ranks 1,2] [--repeat 3] [--no-peer]
+    # defaults: 10000 particles, 1.0 s, 2e-3 s, 1 and 2 ranks, each timed 3 times, LIGGGHTS too
 
-The peer's geometry and particles (../shared/peers/liggghts_hopper.sh): conical hopper, orifice
-D0 = 30 mm, spheres d = 4 mm, ρ = 2500, restitution 0.9, friction 0.3. As the peer does, the
-particles first settle for 0.6 s with the orifice closed (untimed, once, 1 rank, ending in a
-checkpoint), then the timed discharge restarts from that checkpoint with the orifice open and runs
-SIM_TIME, on 1 and 2 ranks (wall time of the whole process, start-up included, as the peer's
-wall_s). Printed per rank count: wall time, particles discharged, the steady discharge rate (second
+The peer's geometry and particles (../shared/peers/liggghts_hopper.sh): conical hopper, orifice D0 =
+30 mm, spheres d = 4 mm, ρ = 2500, restitution 0.9, friction 0.3. As the peer does, the particles
+first settle for 0.6 s with the orifice closed (untimed, once, 1 rank, ending in a checkpoint), then
+the timed discharge restarts from that checkpoint with the orifice open and runs SIM_TIME, on 1 and
+2 ranks (wall time of the whole process, start-up included, as the peer's wall_s), each rank count
+``--repeat`` times, the rank counts taking turns (on a shared 2-core machine one run of the same
+work varied by up to 40 % from one minute to the next): the speed-up and the ratios to the peer are
+of the medians. Printed per run: wall time, particles discharged, the steady discharge rate (second
 half of SIM_TIME) against Beverloo's law (C = 0.58, k = 1.5, bulk density 0.6 ρ), collisions
-(impacts faster than the rest speed) per wall second, events and dense-step contacts and sweeps
-per step, and on several ranks the most particles a rank owned and held as ghosts and the most
-bytes it sent in a contact step; then the LIGGGHTS peer (Hertz contacts at dt = 2e-5 s) run in the
-same invocation and the time-to-solution ratio pmpm/LIGGGHTS. Needs the peer's Debian package
-(liggghts), which the peer script installs with apt-get if missing. On several ranks each rank
-owns the particles in its box (docs/collisions.md, "Particles owned by ranks"); the fill and a
-5-step untimed discharge on each rank count compile the contact kernels (numba) once, the timed
-runs load them from numba's cache (in a fresh clone, compiling inside the timed runs made them
-11–14 s slower).
+(impacts faster than the rest speed) per wall second, events and dense-step contacts and sweeps per
+step, and on several ranks the most particles a rank owned and held as ghosts and the most bytes it
+sent in a contact step; then the LIGGGHTS peer (Hertz contacts at dt = 2e-5 s) run in the same
+invocation and the time-to-solution ratio pmpm/LIGGGHTS. Needs the peer's Debian package (liggghts),
+which the peer script installs with apt-get if missing. On several ranks each rank owns the
+particles in its box (docs/collisions.md, "Particles owned by ranks"); the fill and a 5-step untimed
+discharge on each rank count compile the contact kernels (numba) once, the timed runs load them from
+numba's cache (in a fresh clone, compiling inside the timed runs made them 11–14 s slower).
 """
 import json
 import os
@@ -96,7 +97,9 @@ def main():
     args = [a for a in sys.argv[1:] if not a.startswith("--")]
     options = sys.argv[1:]
     rank_counts = [int(n) for n in options[options.index("--ranks") + 1].split(",")] if "--ranks" in options else [1, 2]
-    args = [a for a in args if not ("--ranks" in options and a == options[options.index("--ranks") + 1])]
+    repeat = int(options[options.index("--repeat") + 1]) if "--repeat" in options else 3
+    values_of_options = {options[options.index(flag) + 1] for flag in ("--ranks", "--repeat") if flag in options}
+    args = [a for a in args if a not in values_of_options]
     count = int(args[0]) if len(args) > 0 else 10000
     sim_time = float(args[1]) if len(args) > 1 else 1.0
     dt = float(args[2]) if len(args) > 2 else 2e-3
@@ -118,8 +121,8 @@ def main():
     for ranks in rank_counts:   # untimed: kernels a rank count meets first (numba) compile here, not below
         pmpm(folder, ranks, restart=checkpoint, label="_warm", end_time=FILL_TIME + 5 * dt, dt=dt, orifice="outlet",
              particles="loose.txt", output_every=5 * dt)
-    results = {}
-    for ranks in rank_counts:
+    results = {ranks: [] for ranks in rank_counts}
+    for ranks in [ranks for _ in range(repeat) for ranks in rank_counts]:   # the rank counts take turns
         # the discharge continues the fill's checkpoint with the orifice open
         seconds, summary, out = pmpm(folder, ranks, restart=checkpoint, end_time=FILL_TIME + sim_time, dt=dt,
                                      orifice="outlet", particles="loose.txt", output_every=sim_time / 10)
@@ -131,9 +134,9 @@ def main():
         steps = round(sim_time / dt)
         discharged = summary["particles_removed"] - fill.get("particles_removed", 0)  # the restart carries the fill's
         steady = steady_rate(out / "particles.csv", FILL_TIME + sim_time / 2)
-        results[ranks] = seconds
-        print(f"pmpm hopper ranks={ranks} particles={count} sim_time={sim_time} dt={dt} steps={steps} "
-              f"wall_s={seconds:.1f} collisions_s={summary['wall_seconds'].get('collisions', 0):.1f} "
+        results[ranks].append(seconds)
+        print(f"pmpm hopper ranks={ranks} run={len(results[ranks])} particles={count} sim_time={sim_time} dt={dt} "
+              f"steps={steps} wall_s={seconds:.1f} collisions_s={summary['wall_seconds'].get('collisions', 0):.1f} "
               f"discharged={discharged} rate={discharged / sim_time:.0f}/s "
               f"steady_rate={steady:.0f}/s (Beverloo {beverloo_rate:.0f}/s, ratio {steady / beverloo_rate:.2f}) "
               f"collisions={impacts} collisions_per_wall_s={impacts / seconds:.0f} "
@@ -145,8 +148,12 @@ def main():
               f"energy_clamps={collisions.get('energy_clamps', 0)} capped_steps={collisions.get('capped', 0)}"
               + "".join(f" {key}={value}" for key, value in summary.get("particles_per_rank", {}).items())
               + f" load={os.getloadavg()[0]:.1f}", flush=True)
+    for ranks, times in results.items():
+        print(f"pmpm ranks={ranks}: median {np.median(times):.1f} s, fastest {min(times):.1f} s of {len(times)} "
+              f"({', '.join(f'{t:.1f}' for t in times)})")
+    results = {ranks: float(np.median(times)) for ranks, times in results.items()}
     if results.get(1) and results.get(2):
-        print(f"pmpm speed-up 1 -> 2 ranks: {results[1] / results[2]:.2f}")
+        print(f"pmpm speed-up 1 -> 2 ranks (medians): {results[1] / results[2]:.2f}")
     if "--no-peer" in options:
         return
     if not PEER.exists():

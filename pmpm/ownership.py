@@ -146,24 +146,25 @@ def exchange_rows(comm, destination: np.ndarray, arrays: dict) -> dict:
 
 def exchange_groups(comm, groups: list) -> list[dict]:
     """Collective. ``exchange_rows`` of several groups (destination, arrays) of rows in one
-    exchange; rows whose destination is this rank stay, without a message, ahead of those received."""
-    outgoing = [[] for _ in range(comm.size)]
-    for destination, arrays in groups:
-        order = np.argsort(destination, kind="stable")
-        ranks = destination[order]
-        edges = np.searchsorted(ranks, np.arange(comm.size + 1))
-        for r in range(comm.size):
+    exchange; rows whose destination is this rank stay, without a message, ahead of those received.
+    Only the rows that leave are sorted by rank (a step's migration moves a few of thousands)."""
+    outgoing = [[None] * len(groups) for _ in range(comm.size)]
+    staying = []
+    for g, (destination, arrays) in enumerate(groups):
+        here = destination == comm.rank
+        staying.append(arrays if here.all() else {name: values[here] for name, values in arrays.items()})
+        away = np.flatnonzero(~here & (destination >= 0))
+        order = away[np.argsort(destination[away], kind="stable")]
+        edges = np.searchsorted(destination[order], np.arange(comm.size + 1))
+        for r in np.flatnonzero(edges[1:] > edges[:-1]):
             rows = order[edges[r]:edges[r + 1]]
-            outgoing[r].append({name: values[rows] for name, values in arrays.items()} if len(rows) else None)
-    staying = outgoing[comm.rank]
-    outgoing[comm.rank] = None
-    outgoing = [None if parts is None or all(part is None for part in parts) else parts for parts in outgoing]
+            outgoing[r][g] = {name: values[rows] for name, values in arrays.items()}
+    outgoing = [None if all(part is None for part in parts) else parts for parts in outgoing]
     incoming = [parts for parts in comm.alltoall(outgoing) if parts is not None]
     result = []
     for g, (_, arrays) in enumerate(groups):
-        parts = [staying[g]] + [parts[g] for parts in incoming]
-        result.append({name: np.concatenate([values[:0]] + [part[name] for part in parts if part is not None])
-                       for name, values in arrays.items()})
+        parts = [staying[g]] + [parts[g] for parts in incoming if parts[g] is not None]
+        result.append({name: np.concatenate([part[name] for part in parts]) for name in arrays})
     return result
 
 
