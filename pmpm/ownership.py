@@ -152,7 +152,9 @@ def exchange_groups(comm, groups: list) -> list[dict]:
     staying = []
     for g, (destination, arrays) in enumerate(groups):
         here = destination == comm.rank
-        staying.append(arrays if here.all() else {name: values[here] for name, values in arrays.items()})
+        kept = np.flatnonzero(here)   # (np.take: a third of the time of a boolean mask on rows)
+        staying.append(arrays if len(kept) == len(here) else
+                       {name: np.take(values, kept, axis=0) for name, values in arrays.items()})
         away = np.flatnonzero(~here & (destination >= 0))
         order = away[np.argsort(destination[away], kind="stable")]
         edges = np.searchsorted(destination[order], np.arange(comm.size + 1))

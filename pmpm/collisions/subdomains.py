@@ -58,9 +58,10 @@ def advance_owned(comm, partition: Partition, state: ParticleState, walls: Walls
     memory = ContactMemory.empty() if memory is None else memory
     walls_after = walls.moved(dt) if walls is not None else None
     kernels = jit.kernels()
-    owned_bodies = Bodies.of(state)
-    free_anywhere, top, r_max, population = reduced(comm, max_of=(float(owned_bodies.free.any()),
-                                                                  owned_bodies.top_speed(),
+    movable = state.movable
+    moving = movable | ((state.motion == PRESCRIBED) & ~state.deposited)   # (as Bodies.top_speed)
+    top = float(np.sqrt((state.v[moving] ** 2).sum(1).max())) if moving.any() else 0.0
+    free_anywhere, top, r_max, population = reduced(comm, max_of=(float(movable.any()), top,
                                                                   float(state.radius.max(initial=0.0))),
                                                     sum_of=(len(state),))
     population = int(round(population))
