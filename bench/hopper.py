@@ -21,6 +21,7 @@ particles in its box (docs/collisions.md, "Particles owned by ranks"); the fill 
 discharge on each rank count compile the contact kernels (numba) once, the timed runs load them from
 numba's cache (in a fresh clone, compiling inside the timed runs made them 11–14 s slower).
 """
+import argparse
 import json
 import os
 import re
@@ -94,15 +95,16 @@ def steady_rate(csv, start) -> float:
 
 
 def main():
-    args = [a for a in sys.argv[1:] if not a.startswith("--")]
-    options = sys.argv[1:]
-    rank_counts = [int(n) for n in options[options.index("--ranks") + 1].split(",")] if "--ranks" in options else [1, 2]
-    repeat = int(options[options.index("--repeat") + 1]) if "--repeat" in options else 3
-    values_of_options = {options[options.index(flag) + 1] for flag in ("--ranks", "--repeat") if flag in options}
-    args = [a for a in args if a not in values_of_options]
-    count = int(args[0]) if len(args) > 0 else 10000
-    sim_time = float(args[1]) if len(args) > 1 else 1.0
-    dt = float(args[2]) if len(args) > 2 else 2e-3
+    parser = argparse.ArgumentParser(description="DEM hopper discharge, pmpm against LIGGGHTS")
+    parser.add_argument("count", nargs="?", type=int, default=10000)
+    parser.add_argument("sim_time", nargs="?", type=float, default=1.0)
+    parser.add_argument("dt", nargs="?", type=float, default=2e-3)
+    parser.add_argument("--ranks", default="1,2")
+    parser.add_argument("--repeat", type=int, default=3)
+    parser.add_argument("--no-peer", action="store_true")
+    args = parser.parse_args()
+    count, sim_time, dt, repeat = args.count, args.sim_time, args.dt, args.repeat
+    rank_counts = [int(n) for n in args.ranks.split(",")]
     import meshio
     folder = Path(tempfile.mkdtemp(prefix="pmpm_hopper_"))
     meshio.write(str(folder / "hopper.msh"), hopper_mesh(), file_format="gmsh22", binary=False)
@@ -154,7 +156,7 @@ def main():
     results = {ranks: float(np.median(times)) for ranks, times in results.items()}
     if results.get(1) and results.get(2):
         print(f"pmpm speed-up 1 -> 2 ranks (medians): {results[1] / results[2]:.2f}")
-    if "--no-peer" in options:
+    if args.no_peer:
         return
     if not PEER.exists():
         print(f"LIGGGHTS peer script not found at {PEER}: no comparison")

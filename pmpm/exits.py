@@ -10,7 +10,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .collisions.walls import closest_points_on_triangles
+from .collisions import jit
 
 ROWS_PER_CHUNK = 250_000   # point–triangle pairs measured at once (bounds the memory, ≈ 0.1 GB)
 
@@ -42,20 +42,11 @@ class ExitFaces:
     def nearest(self, points: np.ndarray) -> np.ndarray:
         """(k,) index into ``names`` of the boundary nearest to each point (k, 3) (m)."""
         points = np.asarray(points, float).reshape(-1, 3)
-        out = np.zeros(len(points), np.int64)
-        m = len(self.triangles)
-        if m == 0:
-            return out
+        if len(self.triangles) == 0 or len(points) == 0:
+            return np.zeros(len(points), np.int64)
         a, b, c = self.triangles[:, 0], self.triangles[:, 1], self.triangles[:, 2]
-        per_chunk = max(1, ROWS_PER_CHUNK // m)
-        for start in range(0, len(points), per_chunk):
-            chunk = points[start:start + per_chunk]
-            p = np.repeat(chunk, m, axis=0)
-            q, _ = closest_points_on_triangles(p, np.tile(a, (len(chunk), 1)), np.tile(b, (len(chunk), 1)),
-                                               np.tile(c, (len(chunk), 1)))
-            distance = np.linalg.norm(p - q, axis=1).reshape(len(chunk), m)
-            out[start:start + len(chunk)] = self.boundary[np.argmin(distance, axis=1)]
-        return out
+        face, _ = jit.kernels().contact_times.nearest_faces(points, a, b, c)
+        return self.boundary[face]
 
     def crossed(self, start: np.ndarray, end: np.ndarray) -> np.ndarray:
         """(k,) index into ``names`` of the boundary that each path from ``start`` (k, 3), inside,
@@ -71,7 +62,7 @@ class ExitFaces:
         a = triangles[:, 0]
         e1, e2 = triangles[:, 1] - a, triangles[:, 2] - a
         per_chunk = max(1, ROWS_PER_CHUNK // max(m, 1))
-        for first in range(0, len(start) if m else 0, per_chunk):
+        for first in range(0, len(start), per_chunk) if m else ():
             s, d = start[first:first + per_chunk, None, :], (end - start)[first:first + per_chunk, None, :]
             # Möller–Trumbore: s + t d = a + u e1 + v e2, 0 ≤ t ≤ 1, u, v ≥ 0, u + v ≤ 1
             p = np.cross(d, e2)

@@ -54,6 +54,16 @@ class ParticleState:
         """Particles whose velocities respond to forces and impulses (free and not deposited)."""
         return (self.motion == FREE) & ~self.deposited
 
+    @property
+    def moving(self) -> np.ndarray:
+        """Particles that move over a step (free or prescribed, not deposited)."""
+        return (self.motion != FIXED) & ~self.deposited
+
+    def top_speed(self) -> float:
+        """The largest speed (m/s) of a moving particle; 0 without one."""
+        moving = self.moving
+        return float(np.sqrt((self.v[moving] ** 2).sum(1).max())) if moving.any() else 0.0
+
     def copy(self) -> "ParticleState":
         """A copy whose arrays may be changed in place without touching this state."""
         return replace(self, **{f.name: getattr(self, f.name).copy() for f in fields(self)})

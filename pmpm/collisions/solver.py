@@ -75,14 +75,15 @@ class Bodies:
         return (self.x, self.v, self.w, self.inv_m, self.inv_i, self.radius, self.free, self.deposited, self.driven,
                 self.clock, self.stamp)
 
+    def top_speed(self) -> float:
+        """As ``ParticleState.top_speed``, of the working copy (velocities changed in the step)."""
+        moving = self.free | self.driven
+        return float(np.sqrt((self.v[moving] ** 2).sum(1).max())) if moving.any() else 0.0
+
     def kernel_tuple(self) -> tuple:
         """The arrays as the compiled events take them."""
         return (self.x, self.v, self.w, self.inv_m, self.inv_i, self.radius, self.free, self.deposited, self.clock,
                 self.stamp)
-
-    def top_speed(self) -> float:
-        moving = self.free | self.driven
-        return float(np.sqrt((self.v[moving] ** 2).sum(1).max())) if moving.any() else 0.0
 
 
 @dataclass
@@ -129,7 +130,7 @@ def advance_with_collisions(state: ParticleState, walls: Walls | None, dt: float
     wall_speed = float(walls.top_speed.max()) if walls is not None else 0.0
     # impacts can make a particle faster than any was (a light one hit by a heavy one, a paddle)
     if speed is None:
-        speed = max(SEARCH_SLACK * start.top_speed(), settings.rest_speed, 2.0 * wall_speed)
+        speed = max(SEARCH_SLACK * state.top_speed(), settings.rest_speed, 2.0 * wall_speed)
     for attempt in range(MAX_SEARCHES):
         last = attempt == MAX_SEARCHES - 1
         bodies = start.copy()

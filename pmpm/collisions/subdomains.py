@@ -42,7 +42,7 @@ from .solver import Bodies, ContactStep, advance_with_collisions, remove_overlap
 from .stats import CLAMPS, DEPOSITED, EXTRA, NAMES, SWEEPS, as_dict, new_counters
 from .walls import Walls
 from ..ownership import Halo, Partition, particle_rows, particles_of
-from ..particles import FREE, PRESCRIBED, ParticleState
+from ..particles import FREE, ParticleState
 
 
 def advance_owned(comm, partition: Partition, state: ParticleState, walls: Walls | None, dt: float,
@@ -58,12 +58,9 @@ def advance_owned(comm, partition: Partition, state: ParticleState, walls: Walls
     memory = ContactMemory.empty() if memory is None else memory
     walls_after = walls.moved(dt) if walls is not None else None
     kernels = jit.kernels()
-    movable = state.movable
-    moving = movable | ((state.motion == PRESCRIBED) & ~state.deposited)   # (as Bodies.top_speed)
-    top = float(np.sqrt((state.v[moving] ** 2).sum(1).max())) if moving.any() else 0.0
-    free_anywhere, top, r_max, population = reduced(comm, max_of=(float(movable.any()), top,
-                                                                  float(state.radius.max(initial=0.0))),
-                                                    sum_of=(len(state),))
+    free_anywhere, top, r_max, population = reduced(comm, sum_of=(len(state),),
+                                                    max_of=(float(state.movable.any()), state.top_speed(),
+                                                            float(state.radius.max(initial=0.0))))
     population = int(round(population))
     used_walls = walls if walls is not None and len(walls) and free_anywhere else None
     wall_speed = float(used_walls.top_speed.max()) if used_walls is not None else 0.0
@@ -142,7 +139,7 @@ def gathered_step(comm, state, local, halo, record, walls, dt, settings, memory,
                                                                "tangential_impulse")))
     result = advance_with_collisions(cluster, walls, dt, settings, memory, speed=speed, population=population)
     # owned particles out of every contact fly at their velocity (fixed and deposited ones stay)
-    moving = ((state.motion == FREE) & ~state.deposited) | ((state.motion == PRESCRIBED) & ~state.deposited)
+    moving = state.moving
     state.x[moving] += state.v[moving] * dt
     at = np.searchsorted(cluster.id, state.id)
     found = at < len(cluster)
