@@ -47,8 +47,7 @@ def dense_step(bodies, record, warm_n, warm_t, settings, dt, walls, kernels, cou
     lam_n, lam_t = np.zeros(m), np.zeros((m, 3))
     lam_n[rows], lam_t[rows] = warm_n[rows], warm_t[rows]
     remembered = bool(lam_n.any())
-    members = np.unique(np.concatenate([first[rows], second[rows]]))
-    members = members[members < n]
+    members = bodies_in(rows, first, second, n)
     v0, w0 = v.copy(), w.copy()
     energy = impulses.kinetic_energy(members, inv_m, inv_i, v, w)
     driven = bodies.driven[first[rows]] | bodies.driven[second[rows]]
@@ -77,6 +76,14 @@ def dense_step(bodies, record, warm_n, warm_t, settings, dt, walls, kernels, cou
     finish(bodies, record, rows, lam_n, lam_t, v0, touching, hits, hit_time, dt, sweeps, counters, extra,
            wall_arrays(walls)[6])
     return lam_n, lam_t
+
+
+def bodies_in(rows: np.ndarray, first: np.ndarray, second: np.ndarray, n: int) -> np.ndarray:
+    """The particles (rows < n, ascending) in contacts ``rows`` (a mask over n, not a sort of the contacts)."""
+    touched = np.zeros(n + 1, bool)
+    touched[first[rows]] = True
+    touched[second[rows]] = True
+    return np.flatnonzero(touched[:n])
 
 
 def targets(bodies, record, r_first, r_second, settings, dt) -> tuple:

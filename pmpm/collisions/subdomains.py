@@ -36,7 +36,7 @@ from mpi4py import MPI
 from . import jit
 from .record import ContactMemory
 from .search import find_contacts, wall_arrays
-from .dense import finish, targets
+from .dense import bodies_in, finish, targets
 from .settings import COLD_SWEEPS, ENERGY_TOL, LOCAL_SWEEPS, SEARCH_SLACK, SWEEP_TOL, CollisionSettings
 from .solver import Bodies, ContactStep, advance_with_collisions, remove_overlaps
 from .stats import CLAMPS, DEPOSITED, EXTRA, NAMES, SWEEPS, as_dict, new_counters
@@ -175,8 +175,7 @@ def dense_blocks(halo: Halo, bodies, record, rows, warm_n, warm_t, settings, dt,
     closing, touching, hits, target, hit_time = targets(bodies, record, r_first, r_second, settings, dt)
     lam_n, lam_t = np.zeros(m), np.zeros((m, 3))
     lam_n[rows], lam_t[rows] = warm_n[rows], warm_t[rows]
-    members = np.unique(np.concatenate([first[rows], second[rows]]))
-    members = members[members < n]
+    members = bodies_in(rows, first, second, n)
     owned_members = members[halo.owned[members]]
     v0, w0 = v.copy(), w.copy()
     driven = bodies.driven[first[rows]] | bodies.driven[second[rows]]
