@@ -6,7 +6,7 @@
 The bed of ``bench/contacts.py`` (N spheres, default 100,000, on a lattice 1 % apart in a box) is
 cut into P boxes by ``ownership.bisect`` (in one process: the bisection's reductions over ranks are
 sums of histograms, the same whole), and for each box the ghosts a contact step copies in
-(``Halo``'s rule: within r + r_max + reach of the box) and the particles it shares (the rows of
+(a dense step's rule: within r + r_max + two travels of the box) and the particles it shares (the rows of
 its merge per round of sweeps) are counted. Printed per P: the most owned and ghost particles of a
 rank, the bytes a rank sends per step (ghosts once, 170 B each; 48 B per shared particle per merge,
 M + 1 merges: M = K / LOCAL_SWEEPS rounds of K sweeps, and the warm start's),
@@ -59,8 +59,9 @@ def main():
                                            option("--bandwidth", 5.0), option("--sweeps", 20))
     state, _, _, dt = bed_lattice(n)
     r = float(state.radius.max())
-    reach = 2 * 1.25 * 1.0 * dt           # the search's reach at 1 m/s (a settling bed is slower)
-    width = state.radius + r + reach
+    # a dense step's ghosts: within r + r_max + the particle's travel + the fastest travel, every
+    # particle at 1 m/s (a settling bed is slower; subdomains.advance_owned)
+    width = state.radius + r + 2 * 1.0 * dt
     print(f"{n} spheres (r = {r} m), bed {np.ptp(state.x, axis=0).round(3)} m; compute {compute} µs/particle/step, "
           f"latency {latency} µs, bandwidth {bandwidth} GB/s, {sweeps} sweeps")
     print(f"{'ranks':>6s} {'owned':>8s} {'ghosts':>8s} {'shared':>8s} {'neighbours':>10s} {'kB/step':>9s} "

@@ -10,7 +10,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from pmpm.collisions import CollisionSettings, Walls, advance_with_collisions
+from pmpm.collisions import CollisionSettings, ContactMemory, Walls, advance_with_collisions
 from pmpm.collisions.subdomains import advance_owned
 from pmpm.ownership import Halo, Partition, bisect, gather
 from pmpm.particles import ParticleState
@@ -138,6 +138,37 @@ def test_particles_in_one_half_leave_ghosts_near_the_cut_only(comm):
         assert counts[1] == (0, expected) and expected == 10
         if comm.rank == 1:
             assert ghosts[:, 0].min() > -(2 * r + 1e-3)
+
+
+@pytest.mark.mpi
+@pytest.mark.parametrize("dense_contacts", [1, 256])
+def test_a_dense_step_takes_the_ghosts_its_contacts_need(comm, dense_contacts):
+    """After a dense step (a contact memory), the next step's ghosts are the particles within
+    r + r_max + their own travel + the fastest one's travel of a rank's box, not the full search
+    reach (2 × 1.25 × the top speed × dt): a ball at rest 21.8 mm from the cut is no ghost when the
+    step is dense, and is one when it is not (the full reach built again). Both as on 1 rank."""
+    r, dt = 0.01, 1e-3
+    x = [[-r, 0.0, 0.0], [r, 0.0, 0.0],          # touching across the cut
+         [0.0205, 0.05, 0.0],                     # within 2 r + 1 mm (the fastest travel) of the cut
+         [0.0218, 0.10, 0.0],                     # within the full reach (2 r + 2.5 mm), not the narrow
+         [0.5, 0.0, 0.0]]                         # 1 m/s along y, far away: the top speed
+    v = np.zeros((5, 3))
+    v[4, 1] = 1.0
+    state = particles(x, v=v, radius=r)
+    settings = CollisionSettings(restitution=0.5, friction=0.5, rest_speed=1e-6, dense_contacts=dense_contacts,
+                                 gather_contacts=0)
+    memory = ContactMemory(np.array([0]), np.array([1]), np.zeros(1), np.zeros((1, 3)))   # "the last step was dense"
+    whole = state.copy()
+    advance_with_collisions(whole, None, dt, settings, memory)
+    partition = halves(comm)
+    owned = state.without(partition.owner_of(state.x) != comm.rank)
+    step = advance_owned(comm, partition, owned, None, dt, settings, memory if comm.rank == 0 else None)
+    if comm.size == 2:
+        expected = {(1, 0): 2, (1, 1): 1, (256, 0): 3, (256, 1): 1}[(dense_contacts, comm.rank)]
+        assert step.stats["ghosts"] == expected
+    result = gather(comm, owned)
+    for name in ("x", "v", "omega"):
+        np.testing.assert_allclose(getattr(result, name), getattr(whole, name), rtol=0, atol=1e-15)
 
 
 @pytest.mark.mpi

@@ -58,26 +58,42 @@ def advance_owned(comm, partition: Partition, state: ParticleState, walls: Walls
     memory = ContactMemory.empty() if memory is None else memory
     walls_after = walls.moved(dt) if walls is not None else None
     kernels = jit.kernels()
-    free_anywhere, top, r_max, population = reduced(comm, sum_of=(len(state),),
-                                                    max_of=(float(state.movable.any()), state.top_speed(),
-                                                            float(state.radius.max(initial=0.0))))
+    free_anywhere, top, r_max, population, remembered = reduced(
+        comm, sum_of=(len(state), len(memory)),
+        max_of=(float(state.movable.any()), state.top_speed(), float(state.radius.max(initial=0.0))))
     population = int(round(population))
     used_walls = walls if walls is not None and len(walls) and free_anywhere else None
     wall_speed = float(used_walls.top_speed.max()) if used_walls is not None else 0.0
     speed = max(SEARCH_SLACK * top, settings.rest_speed, 2.0 * wall_speed)
     reach = 2.0 * speed * dt
-    # every particle within contact range of a rank's box is a ghost there
-    halo, local = Halo.build(comm, partition, state, (state.radius + r_max + reach) * (1 + 1e-9))
-    n = len(local)
-    owned = np.append(halo.owned, False)              # the world row last
+    full_width = (state.radius + r_max + reach) * (1 + 1e-9)
+    # A dense step needs only the pairs that can act, closer than r_i + r_j + each one's travel
+    # (``find_contacts``): its ghosts are the particles within r + r_max + their travel + the
+    # largest travel of a rank's box. Taken where the last step was dense (its memory that large);
+    # a step that turns out not dense builds the ghosts of the full reach.
+    dense_likely = settings.dense_contacts > 0 and remembered >= max(settings.gather_contacts, 1)
+    if dense_likely:
+        travel = np.minimum(np.where(state.moving, np.linalg.norm(state.v, axis=1), 0.0) * dt * (1 + 1e-9),
+                            0.5 * reach)
+        width = (state.radius + r_max + travel + min(top * dt * (1 + 1e-9), 0.5 * reach)) * (1 + 1e-9)
+    halo, local = Halo.build(comm, partition, state, width if dense_likely else full_width)
     bodies = Bodies.of(local)
     record, dense, acting = find_contacts(bodies, used_walls, dt, reach, settings.restitution, settings.friction,
                                           kernels, dense_contacts=settings.dense_contacts, owned=halo.owned, comm=comm)
-    extra = {"owned": len(state), "ghosts": n - len(state)}
     if not dense or acting < settings.gather_contacts:
+        sent = 0
+        if dense_likely:   # the same search over the ghosts of the full reach
+            sent = halo.sent
+            halo, local = Halo.build(comm, partition, state, full_width)
+            bodies = Bodies.of(local)
+            record = find_contacts(bodies, used_walls, dt, reach, settings.restitution, settings.friction, kernels,
+                                   dense_contacts=settings.dense_contacts, owned=halo.owned, comm=comm)[0]
         step = gathered_step(comm, state, local, halo, record, walls, dt, settings, memory, speed, population)
-        step.stats.update(extra, exchanged_bytes=halo.sent)   # (this rank's)
+        step.stats.update(owned=len(state), ghosts=len(local) - len(state), exchanged_bytes=sent + halo.sent)
         return step
+    n = len(local)
+    owned = np.append(halo.owned, False)              # the world row last
+    extra = {"owned": len(state), "ghosts": n - len(state)}
     counters = new_counters()
     warm_n, warm_t = memory.recall(record, local.id)
     mine = owned[record.first]
