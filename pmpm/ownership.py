@@ -46,8 +46,7 @@ class Partition:
 
     def owner_of(self, x: np.ndarray) -> np.ndarray:
         """(n,) int64, the rank whose box holds each point (n, 3); 0 for a point that is not finite."""
-        inside = ((x[:, None, :] >= self.lower[None]) & (x[:, None, :] < self.upper[None])).all(axis=2)
-        return np.argmax(inside, axis=1).astype(np.int64)
+        return _owners(np.ascontiguousarray(x, float).reshape(-1, 3), self.lower, self.upper)
 
     def distance(self, x: np.ndarray) -> np.ndarray:
         """(n, ranks) distance (m) from each point to each rank's box (0 inside)."""
@@ -61,6 +60,19 @@ class Partition:
     @classmethod
     def from_array(cls, array: np.ndarray) -> "Partition":
         return cls(np.array(array[0], float), np.array(array[1], float))
+
+
+@njit(cache=True)
+def _owners(x, lower, upper):
+    """``Partition.owner_of``, compiled (every step's migration asks it of every particle)."""
+    owner = np.zeros(len(x), np.int64)
+    for i in range(len(x)):
+        for rank in range(len(lower)):
+            if (lower[rank, 0] <= x[i, 0] < upper[rank, 0] and lower[rank, 1] <= x[i, 1] < upper[rank, 1]
+                    and lower[rank, 2] <= x[i, 2] < upper[rank, 2]):
+                owner[i] = rank
+                break
+    return owner
 
 
 def bisect(comm, x: np.ndarray, domain: tuple | None = None) -> Partition:
