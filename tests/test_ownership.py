@@ -81,6 +81,22 @@ def test_bisection_shares_the_particles_evenly(comm):
         assert partition.upper[0, 1] == partition.lower[1, 1] and abs(partition.upper[0, 1] - 1.0) < 0.05
 
 
+def test_owner_of_is_the_box_holding_each_point():
+    """Every point in the half-open box [lower, upper) that holds it; a point that is not finite on
+    rank 0; the boxes of an 8-rank bisection of a random cloud, and points on their faces."""
+    rng = np.random.default_rng(5)
+    x = rng.random((4000, 3))
+    comm = type("Whole", (), {"size": 8, "rank": 0, "Allreduce": lambda self, *a, **k: None})()
+    partition = bisect(comm, x)
+    points = np.concatenate([x, partition.lower[1:4], [[np.nan, 0.5, 0.5], [0.5, np.inf, 0.5]]])
+    owner = partition.owner_of(points)
+    inside = ((points[:, None, :] >= partition.lower[None]) & (points[:, None, :] < partition.upper[None])).all(2)
+    assert (inside.sum(axis=1)[:-2] == 1).all()
+    np.testing.assert_array_equal(owner[:-2], np.argmax(inside[:-2], axis=1))
+    np.testing.assert_array_equal(owner[-2:], [0, 0])
+    assert np.bincount(owner[:4000], minlength=8).min() >= 4000 // 8 - 40
+
+
 @pytest.mark.mpi
 def test_pair_across_the_cut_gives_the_one_rank_result(comm):
     """Two spheres meeting head-on and obliquely across x = 0, one on each rank: positions, velocities
