@@ -72,11 +72,12 @@ def advance_owned(comm, partition: Partition, state: ParticleState, walls: Walls
     # largest travel of a rank's box. Taken where the last step was dense (its memory that large);
     # a step that turns out not dense builds the ghosts of the full reach.
     dense_likely = settings.dense_contacts > 0 and remembered >= max(settings.gather_contacts, 1)
+    width = full_width
     if dense_likely:
         travel = np.minimum(np.where(state.moving, np.linalg.norm(state.v, axis=1), 0.0) * dt * (1 + 1e-9),
                             0.5 * reach)
         width = (state.radius + r_max + travel + min(top * dt * (1 + 1e-9), 0.5 * reach)) * (1 + 1e-9)
-    halo, local = Halo.build(comm, partition, state, width if dense_likely else full_width)
+    halo, local = Halo.build(comm, partition, state, width)
     bodies = Bodies.of(local)
     record, dense, acting = find_contacts(bodies, used_walls, dt, reach, settings.restitution, settings.friction,
                                           kernels, dense_contacts=settings.dense_contacts, owned=halo.owned, comm=comm)
