@@ -61,8 +61,7 @@ class ParticleState:
 
     def top_speed(self) -> float:
         """The largest speed (m/s) of a moving particle; 0 without one."""
-        moving = self.moving
-        return float(np.sqrt((self.v[moving] ** 2).sum(1).max())) if moving.any() else 0.0
+        return fastest(self.v, self.moving)
 
     def copy(self) -> "ParticleState":
         """A copy whose arrays may be changed in place without touching this state."""
@@ -92,3 +91,8 @@ def accelerate(state: ParticleState, force: np.ndarray, torque: np.ndarray, dt: 
     free = state.movable
     state.v[free] += dt * force[free] / state.mass[free, None]
     state.omega[free] += dt * torque[free] / state.inertia[free, None]
+
+
+def fastest(v: np.ndarray, moving: np.ndarray) -> float:
+    """The largest speed (m/s) among the velocities ``v`` (n, 3) where ``moving``; 0 where none is."""
+    return float(np.sqrt((v[moving] ** 2).sum(1).max())) if moving.any() else 0.0

@@ -28,7 +28,7 @@ from .settings import (MAX_SEARCHES, OVERLAP_TOL, SEARCH_SLACK, SEPARATION_SWEEP
                        CollisionSettings)
 from .stats import EXCEEDED, as_dict, new_counters
 from .walls import Walls
-from ..particles import FIXED, FREE, PRESCRIBED, ParticleState
+from ..particles import FIXED, FREE, PRESCRIBED, ParticleState, fastest
 
 
 @dataclass
@@ -77,8 +77,7 @@ class Bodies:
 
     def top_speed(self) -> float:
         """As ``ParticleState.top_speed``, of the working copy (velocities changed in the step)."""
-        moving = self.free | self.driven
-        return float(np.sqrt((self.v[moving] ** 2).sum(1).max())) if moving.any() else 0.0
+        return fastest(self.v, self.free | self.driven)
 
     def kernel_tuple(self) -> tuple:
         """The arrays as the compiled events take them."""

@@ -35,7 +35,7 @@ from mpi4py import MPI
 
 from . import jit
 from .record import ContactMemory
-from .search import find_contacts, wall_arrays
+from .search import find_contacts, travel_of, wall_arrays
 from .dense import bodies_in, finish, targets
 from .settings import COLD_SWEEPS, ENERGY_TOL, LOCAL_SWEEPS, SEARCH_SLACK, SWEEP_TOL, CollisionSettings
 from .solver import Bodies, ContactStep, advance_with_collisions, remove_overlaps
@@ -74,9 +74,8 @@ def advance_owned(comm, partition: Partition, state: ParticleState, walls: Walls
     dense_likely = settings.dense_contacts > 0 and remembered >= max(settings.gather_contacts, 1)
     width = full_width
     if dense_likely:
-        travel = np.minimum(np.where(state.moving, np.linalg.norm(state.v, axis=1), 0.0) * dt * (1 + 1e-9),
-                            0.5 * reach)
-        width = (state.radius + r_max + travel + min(top * dt * (1 + 1e-9), 0.5 * reach)) * (1 + 1e-9)
+        travel = travel_of(np.where(state.moving, np.linalg.norm(state.v, axis=1), 0.0), dt, reach)
+        width = (state.radius + r_max + travel + travel_of(top, dt, reach)) * (1 + 1e-9)
     halo, local = Halo.build(comm, partition, state, width)
     bodies = Bodies.of(local)
     record, dense, acting = find_contacts(bodies, used_walls, dt, reach, settings.restitution, settings.friction,
