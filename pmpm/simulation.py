@@ -24,14 +24,14 @@ from .collisions.subdomains import advance_owned
 from .coupling import CouplingMemory, External, PatchForcing, PenaltyForcing, build_forcing
 from .coupling.bodies import BodyForcing
 from .errors import CaseError, NumericalError, Stopped
-from .exits import ExitFaces
+from .exits import BoundaryFaces
 from .fluid import FlowSolver
 from .forces import field_forces_of_case, gravity_buoyancy
 from .injection import Injector, NewParticles, build_injectors, initial_particles
 from .placement import place_releases
 from .mesh import Mesh
 from .flow_stage import flow_stage
-from .migration import check_finite, exit_triangles as exit_triangles_of, migrate_particles, remove_outside
+from .migration import check_finite, migrate_particles, remove_outside
 from .ownership import Partition, bisect, gather, gather_with
 from .parallel import agree, print0
 from .particles import FIXED, ParticleState, accelerate
@@ -59,8 +59,7 @@ class Model:
     contact_settings: CollisionSettings | None
     bodies: tuple[Body, ...] = ()
     body_forcing: BodyForcing | None = None
-    exits: ExitFaces | None = None
-    exit_triangles: tuple | None = None   # where ranks own particles: the triangles particles leave through
+    exits: BoundaryFaces | None = None    # where particles can be: the boundary they leave through
     cell_boxes: Partition | None = None   # ranks owning particles in a flow: each rank's owned cells' extent
     coupling_reach: float = 0.0           # ... and how far beyond a sphere the forcing reaches a cell (m)
 
@@ -116,9 +115,7 @@ def build_model(comm, case: Case, mesh: Mesh) -> Model:
         forcing = build_forcing(mesh, case.coupling, case.fluid, largest_diameter(case) if corrected else 0.0)
         if bodies:
             body_forcing = BodyForcing(mesh, bodies, case.coupling, case.fluid.density, case.fluid.viscosity)
-    # which boundary each particle that leaves crosses (only where particles can be)
-    exits = ExitFaces.of_mesh(mesh) if (case.particles is not None or case.injections) else None
-    exit_triangles = exit_triangles_of(case, mesh) if comm.size > 1 else None
+    exits = BoundaryFaces.of_mesh(mesh) if (case.particles is not None or case.injections) else None
     cell_boxes, reach = None, 0.0
     if flow is not None and comm.size > 1:
         corners = mesh.vertex_xyz[mesh.cell_vertices[:mesh.n_owned_cells]].reshape(-1, 3)
@@ -126,7 +123,7 @@ def build_model(comm, case: Case, mesh: Mesh) -> Model:
         cell_boxes = Partition(np.array([low for low, _ in extents]), np.array([high for _, high in extents]))
         reach = comm.allreduce(float(forcing.locator.search_reach.max(initial=0.0)), op=MPI.MAX)
     return Model(comm, case, mesh, flow, forcing, build_injectors(case),
-                 collision_settings(case) if case.collisions else None, bodies, body_forcing, exits, exit_triangles,
+                 collision_settings(case) if case.collisions else None, bodies, body_forcing, exits,
                  cell_boxes, reach)
 
 
@@ -208,9 +205,8 @@ def advance(model: Model, state: RunState, dt: float, times: StageTimes) -> RunS
         state = move_particles(model, state, force, torque, dt)
     # 8. particles that left the domain are removed; particles whose centre changed rank migrate
     with times.stage("owners"):
-        state = remove_outside(model, state, moved_from) if state.partition is None else \
-            migrate_particles(model.comm, model.exit_triangles, model.exits, state, moved_from, dt,
-                              rebalance=model.flow is None, inside=in_own_cells(model, state.particles))
+        state = remove_outside(model.exits, state, moved_from) if state.partition is None else \
+            migrate_particles(model.comm, model.exits, state, moved_from, dt, rebalance=model.flow is None)
     # 1 (of the next step). particles released within this step, where they are at its end
     state = replace(state, fresh_from=state.next_id)
     if model.injectors:
@@ -220,15 +216,6 @@ def advance(model: Model, state: RunState, dt: float, times: StageTimes) -> RunS
     if state.partition is None:   # (else checked by migrate_particles)
         check_finite(state.particles, state.step, state.time)
     return state
-
-
-def in_own_cells(model: Model, particles: ParticleState) -> np.ndarray | None:
-    """In a flow, where a rank owns the particles in its part of the mesh: (n,) bool, the particles
-    whose centre lies in one of this rank's cells (inside the domain: no exit to look for; most of
-    them). Without a flow, None (the particles' boxes are not the mesh's)."""
-    if model.flow is None:
-        return None
-    return model.mesh.find_owned_cells(particles.x) >= 0
 
 
 def inject(model: Model, state: RunState, time_end: float) -> RunState:

@@ -88,24 +88,6 @@ def closest_on_triangle(p, a, b, c):
 
 
 @njit(cache=True)
-def nearest_faces(points, a, b, c):
-    """For each point (k, 3), the triangle (a, b, c: (m, 3) each, m ≥ 1) nearest to it (the first
-    of equally near ones) and the closest point on it: (k,) int64 and (k, 3)."""
-    index = np.zeros(len(points), np.int64)
-    closest = np.empty((len(points), 3))
-    for i in range(len(points)):
-        p, best = vec(points, i), INF
-        for k in range(len(a)):
-            q, _ = closest_on_triangle(p, vec(a, k), vec(b, k), vec(c, k))
-            d = sub(p, q)
-            distance = dot(d, d)
-            if distance < best:
-                best, index[i] = distance, k
-                closest[i, 0], closest[i, 1], closest[i, 2] = q
-    return index, closest
-
-
-@njit(cache=True)
 def rotated(vector, unit, cos, sin):
     """Rodrigues: ``vector`` rotated about the unit axis by the angle of (cos, sin)."""
     return add(add(scale(vector, cos), scale(cross(unit, vector), sin)), scale(unit, dot(unit, vector) * (1.0 - cos)))

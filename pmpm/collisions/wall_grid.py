@@ -10,6 +10,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from .contact_times import cross, dot, sub, vec
+
 
 @njit(cache=True)
 def cell_range(low, high, lower, cell, dims):
@@ -111,3 +113,64 @@ def near(points, reach, extra, extra_max, lower, cell, dims, start, items, box_l
                 back -= 1
             found_k[back + 1] = k
     return found_p[:count].copy(), found_k[:count].copy()
+
+
+
+@njit(cache=True)
+def first_crossings(start, end, lower, cell, dims, cell_start, items, a, b, c, normal, box_low, box_high, tolerance):
+    """For each path from ``start`` to ``end`` (n, 3), the triangle it crosses first going against
+    the triangle's inward ``normal``, or −1 (a path that is not finite or has no length crosses none).
+    Möller–Trumbore, s + t d = a + u (b − a) + v (c − a), with u, v ≥ −tol, u + v ≤ 1 + tol and
+    t in [−tol, 1 + tol]: a path through an edge or a vertex hits a triangle."""
+    seen = np.full(len(a), -1, np.int64)
+    out = np.full(len(start), -1, np.int64)
+    low = np.empty(3)
+    high = np.empty(3)
+    for p in range(len(start)):
+        s = vec(start, p)
+        d = sub(vec(end, p), s)
+        if not (np.isfinite(d[0]) and np.isfinite(d[1]) and np.isfinite(d[2])) or dot(d, d) == 0.0:
+            continue
+        for i in range(3):
+            low[i] = min(start[p, i], end[p, i])
+            high[i] = max(start[p, i], end[p, i])
+        first, last = cell_range(low, high, lower, cell, dims)
+        best = np.inf
+        for i in range(first[0], last[0] + 1):
+            for j in range(first[1], last[1] + 1):
+                for h in range(first[2], last[2] + 1):
+                    index = (i * dims[1] + j) * dims[2] + h
+                    for at in range(cell_start[index], cell_start[index + 1]):
+                        k = items[at]
+                        if seen[k] == p:
+                            continue
+                        seen[k] = p
+                        apart = False
+                        for e in range(3):
+                            apart |= (box_low[k, e] > high[e]) or (box_high[k, e] < low[e])
+                        if apart or dot(d, vec(normal, k)) >= 0.0:
+                            continue   # inwards, or along the face
+                        t = crossing(s, d, vec(a, k), vec(b, k), vec(c, k), tolerance)
+                        if t < best:
+                            best, out[p] = t, k
+    return out
+
+
+@njit(cache=True)
+def crossing(s, d, a, b, c, tolerance):
+    """The path fraction t at which s + t d crosses the triangle (a, b, c), or inf (``first_crossings``)."""
+    e1, e2 = sub(b, a), sub(c, a)
+    q = cross(d, e2)
+    det = dot(e1, q)
+    if det == 0.0:
+        return np.inf
+    offset = sub(s, a)
+    u = dot(offset, q) / det
+    if u < -tolerance or u > 1.0 + tolerance:
+        return np.inf
+    r = cross(offset, e1)
+    v = dot(d, r) / det
+    if v < -tolerance or u + v > 1.0 + tolerance:
+        return np.inf
+    t = dot(e2, r) / det
+    return t if -tolerance <= t <= 1.0 + tolerance else np.inf

@@ -131,13 +131,14 @@ class Walls:
     @cached_property
     def grid(self) -> tuple:
         """A uniform grid of the triangles (``wall_grid``): (lower corner (3,), cell size (m),
-        cells per axis (3,), CSR start, triangle indices). Cells about twice the median triangle
-        size, at most 64 per axis."""
+        cells per axis (3,), CSR start, triangle indices). Cells of half the median triangle's
+        bounding radius, at most 64 per axis: a point near a wall visits few triangles
+        (docs/collisions.md, "Eighth session")."""
         from .jit import kernels
         lower = np.min([self.a.min(0), self.b.min(0), self.c.min(0)], axis=0)
         upper = np.max([self.a.max(0), self.b.max(0), self.c.max(0)], axis=0)
         extent = float((upper - lower).max())
-        cell = max(2.0 * float(np.median(self.bounding_radius)), extent / 64.0, 1e-12)
+        cell = max(0.5 * float(np.median(self.bounding_radius)), extent / 64.0, 1e-12)
         dims = np.maximum(np.ceil((upper - lower) / cell).astype(np.int64), 1)
         start, items = kernels().wall_grid.build(self.a, self.b, self.c, lower, cell, dims)
         return lower, cell, dims, start, items
