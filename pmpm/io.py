@@ -261,19 +261,24 @@ class ParticleWriter:
                 f.write(",".join(self.columns) + "\n")
 
     def write(self, time: float, state, hydro_force=None, hydro_torque=None, extra: dict | None = None):
-        """Append the rows of one output time (not collective; rank 0 writes the replicated state)."""
-        if self.comm.rank != 0 or len(state.id) == 0:
-            return
-        blocks = [np.full((len(state.id), 1), time), state.id[:, None].astype(float), state.x, state.v,
+        """Collective. Append the rows of one output time (``state``: every particle, the same on
+        every rank): each rank formats a share of the rows (the formatting, not the file, is the
+        cost), rank 0 writes them in order."""
+        n = len(state.id)
+        share = slice(n * self.comm.rank // self.comm.size, n * (self.comm.rank + 1) // self.comm.size)
+        blocks = [np.full((n, 1), time), state.id[:, None].astype(float), state.x, state.v,
                   state.omega, state.radius[:, None], state.density[:, None]]
         if "fx" in self.columns:
             blocks += [hydro_force, hydro_torque]
         for name in self.columns[len(self.BASE) + (6 if "fx" in self.columns else 0):]:
             blocks.append(np.asarray(extra[name], float)[:, None])
-        table = np.hstack(blocks)
-        formats = ["%.9g", "%d"] + ["%.12g"] * (table.shape[1] - 2)
-        with open(self.path, "a") as f:
-            np.savetxt(f, table, fmt=formats, delimiter=",")
+        table = np.hstack([block[share] for block in blocks]) if n else np.zeros((0, len(self.columns)))
+        row = ",".join(["%.9g", "%d"] + ["%.12g"] * (len(self.columns) - 2)) + "\n"
+        text = "".join([row % tuple(values) for values in table.tolist()])
+        texts = self.comm.gather(text, root=0) if self.comm.size > 1 else [text]
+        if self.comm.rank == 0 and n:
+            with open(self.path, "a") as f:
+                f.writelines(texts)
 
 
 class BodyWriter:
