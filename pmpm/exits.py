@@ -43,7 +43,7 @@ class BoundaryFaces:
         if len(start) == 0 or len(self.triangles) == 0:
             return np.full(len(start), -1, np.int64)
         walls = self.triangles
-        lower, cell, dims, cell_start, items = walls.grid
+        lower, cell, dims, cell_start, items = walls.grid()   # (a step's paths are short)
         triangle = kernels().wall_grid.first_crossings(np.ascontiguousarray(start), np.ascontiguousarray(end), lower,
                                                        cell, dims, cell_start, items, walls.a, walls.b, walls.c,
                                                        walls.normal, *walls.box, TOLERANCE)

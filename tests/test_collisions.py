@@ -916,7 +916,7 @@ def test_the_wall_search_finds_the_triangles_on_its_grids_upper_faces():
     floor = squares(np.zeros(3), np.array([2.54 / 127, 0, 0]), np.array([0, 1.27 / 64, 0]), 127, 64)
     cushion = squares(np.array([2.54, 0, 0]), np.array([0, 1.27 / 64, 0]), np.array([0, 0, 0.26 / 13]), 64, 13)
     walls = Walls.from_triangles(np.concatenate([floor, cushion]), boundary=np.repeat([0, 1], [len(floor), len(cushion)]))
-    assert walls.grid[2][0] == 64
+    assert walls.grid(0.03)[2][0] == 64
     point = np.array([[2.52, 0.95, 0.028575]])
     _, found = walls.near(point, 0.03)
     closest, _ = closest_points_on_triangles(np.repeat(point, len(walls), axis=0), walls.a, walls.b, walls.c)

@@ -129,19 +129,32 @@ class Walls:
         return np.max([np.linalg.norm(v - self.centroid, axis=1) for v in (self.a, self.b, self.c)], axis=0)
 
     @cached_property
-    def grid(self) -> tuple:
-        """A uniform grid of the triangles (``wall_grid``): (lower corner (3,), cell size (m),
-        cells per axis (3,), CSR start, triangle indices). Cells of half the median triangle's
-        bounding radius, at most 64 per axis: a point near a wall visits few triangles
-        (docs/collisions.md, "Eighth session")."""
-        from .jit import kernels
-        lower = np.min([self.a.min(0), self.b.min(0), self.c.min(0)], axis=0)
-        upper = np.max([self.a.max(0), self.b.max(0), self.c.max(0)], axis=0)
-        extent = float((upper - lower).max())
-        cell = max(0.5 * float(np.median(self.bounding_radius)), extent / 64.0, 1e-12)
-        dims = np.maximum(np.ceil((upper - lower) / cell).astype(np.int64), 1)
-        start, items = kernels().wall_grid.build(self.a, self.b, self.c, lower, cell, dims)
-        return lower, cell, dims, start, items
+    def grids(self) -> dict:
+        """The grids built so far (``grid``), by cell size in median triangle radii; a new
+        ``Walls`` starts without any."""
+        return {}
+
+    def grid(self, reach: float = 0.0) -> tuple:
+        """A uniform grid of the triangles (``wall_grid``) for queries reaching up to ``reach`` (m):
+        (lower corner (3,), cell size (m), cells per axis (3,), CSR start, triangle indices). Cells
+        of the median triangle's bounding radius R where the reach is within R (a point near a wall
+        visits few triangles), else of 2 R (a long reach visits few cells); at most 64 per axis."""
+        radius = self.median_radius
+        size = 1.0 if reach <= radius else 2.0
+        if size not in self.grids:
+            from .jit import kernels
+            lower = np.min([self.a.min(0), self.b.min(0), self.c.min(0)], axis=0)
+            upper = np.max([self.a.max(0), self.b.max(0), self.c.max(0)], axis=0)
+            cell = max(size * radius, float((upper - lower).max()) / 64.0, 1e-12)
+            dims = np.maximum(np.ceil((upper - lower) / cell).astype(np.int64), 1)
+            start, items = kernels().wall_grid.build(self.a, self.b, self.c, lower, cell, dims)
+            self.grids[size] = (lower, cell, dims, start, items)
+        return self.grids[size]
+
+    @cached_property
+    def median_radius(self) -> float:
+        """The median of the triangles' bounding radii (m)."""
+        return float(np.median(self.bounding_radius))
 
     @cached_property
     def box(self) -> tuple[np.ndarray, np.ndarray]:
@@ -159,7 +172,7 @@ class Walls:
         from .jit import kernels
         reach = np.ascontiguousarray(np.broadcast_to(np.asarray(reach, float), len(points)))
         extra = np.zeros(len(self)) if extra is None else np.ascontiguousarray(extra, float)
-        lower, cell, dims, start, items = self.grid
+        lower, cell, dims, start, items = self.grid(float(reach.max()) + float(extra.max()))
         return kernels().wall_grid.near(np.ascontiguousarray(points, float), reach, extra, float(extra.max()),
                                         lower, cell, dims, start, items, *self.box, self.centroid,
                                         self.bounding_radius)
