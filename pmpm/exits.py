@@ -34,7 +34,8 @@ class BoundaryFaces:
     def of_mesh(cls, mesh) -> "BoundaryFaces":
         """Collective. The boundary triangles of ``mesh``."""
         triangles, boundary, normal = mesh.boundary_triangles(mesh.boundary_names)
-        return cls(Walls.from_triangles(np.reshape(triangles, (-1, 3, 3)), normal, boundary), tuple(mesh.boundary_names))
+        walls = Walls.from_triangles(np.reshape(triangles, (-1, 3, 3)), normal, boundary)
+        return cls(walls, tuple(mesh.boundary_names))
 
     def crossed(self, start: np.ndarray, end: np.ndarray) -> np.ndarray:
         """Local. (k,) index into ``names`` of the boundary that each path from ``start`` (k, 3) to
