@@ -1,9 +1,11 @@
-"""A uniform grid of the wall triangles, compiled (numba): which triangles may be near a point.
+"""A uniform grid of the wall triangles, compiled (numba): which triangles may be near a point,
+and which one a straight path crosses first (stage 8's test for particles that left the domain).
 
 Each triangle is listed in every cell its bounding box overlaps (CSR: ``start`` per cell, then
 triangle indices); a point with a reach visits the cells its own box overlaps and keeps the
-triangles whose bounding spheres meet its sphere. Built once per ``Walls`` (a moved wall is a
-new ``Walls``), in O(triangles); a query costs O(points × triangles per cell).
+triangles whose bounding spheres meet its sphere, a path the cells of its box. Built once per
+``Walls`` and cell size (a moved wall is a new ``Walls``), in O(triangles); a query costs
+O(points × triangles per cell).
 """
 from __future__ import annotations
 
@@ -113,7 +115,6 @@ def near(points, reach, extra, extra_max, lower, cell, dims, start, items, box_l
                 back -= 1
             found_k[back + 1] = k
     return found_p[:count].copy(), found_k[:count].copy()
-
 
 
 @njit(cache=True)
