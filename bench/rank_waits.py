@@ -1,0 +1,83 @@
+"""Where a run on several ranks waits: every blocking MPI call of the time loop clocked on each rank.
+
+    mpirun -n 2 .venv/bin/python bench/rank_waits.py CASE [pmpm options, e.g. --output DIR --restart FILE]
+
+Runs ``python -m pmpm`` with its communicator replaced by one that times each blocking call it
+makes (the collectives and the waits on nonblocking messages; the mesh keeps the plain world
+communicator, which PETSc needs), then prints per rank the whole run's wall time, the seconds
+spent in each kind of call and the rest, its busy time. A rank that waits much longer than another
+is waiting for it: the difference of their busy times is the imbalance, measured without a
+profiler (which slows the ranks unevenly) and without the noise of wall times that vary by tens
+of per cent from one minute to the next on a shared machine (docs/collisions.md, "Eighth session").
+"""
+from __future__ import annotations
+
+import runpy
+import sys
+import time
+from pathlib import Path
+
+from mpi4py import MPI
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+BLOCKING = ("allgather", "allreduce", "alltoall", "gather", "bcast", "Allreduce", "Allgather", "Alltoall",
+            "Alltoallv", "Barrier")
+clock: dict[str, list] = {}
+
+
+def clocked(name, call):
+    def timed(*args, **kwargs):
+        start = time.perf_counter()
+        try:
+            return call(*args, **kwargs)
+        finally:
+            entry = clock.setdefault(name, [0, 0.0])
+            entry[0] += 1
+            entry[1] += time.perf_counter() - start
+    return timed
+
+
+class ClockedComm(MPI.Intracomm):
+    """COMM_WORLD, its blocking calls clocked."""
+
+
+class ClockedRequest(MPI.Request):
+    """``MPI.Request`` with ``Waitall`` clocked (pmpm waits on its messages with it)."""
+
+
+for method in BLOCKING:
+    setattr(ClockedComm, method, clocked(method, getattr(MPI.Intracomm, method)))
+ClockedRequest.Waitall = staticmethod(clocked("Waitall", MPI.Request.Waitall))
+
+
+def main() -> None:
+    world = MPI.COMM_WORLD
+    MPI.COMM_WORLD, MPI.Request = ClockedComm(world), ClockedRequest
+    import pmpm.simulation as simulation
+    build_mesh = simulation.build_mesh
+    simulation.build_mesh = lambda comm, case: build_mesh(world, case)
+    sys.argv = ["pmpm"] + sys.argv[1:]
+    start = time.perf_counter()
+    try:
+        runpy.run_module("pmpm", run_name="__main__")
+    except SystemExit as exit_request:
+        if exit_request.code:
+            raise
+    wall = time.perf_counter() - start
+    ranks = world.gather((wall, dict(clock)), root=0)
+    if world.rank != 0:
+        return
+    names = sorted({name for _, calls in ranks for name in calls})
+    print(f"{'rank':>4} {'wall s':>8} {'waits s':>8} {'busy s':>8}  " + " ".join(f"{n:>10}" for n in names))
+    for rank, (wall, calls) in enumerate(ranks):
+        waits = sum(seconds for _, seconds in calls.values())
+        print(f"{rank:>4} {wall:8.2f} {waits:8.2f} {wall - waits:8.2f}  "
+              + " ".join(f"{calls.get(n, (0, 0.0))[1]:10.2f}" for n in names))
+    busy = [wall - sum(seconds for _, seconds in calls.values()) for wall, calls in ranks]
+    print(f"busiest rank {max(range(len(busy)), key=busy.__getitem__)}: {max(busy) - min(busy):.2f} s busier "
+          f"than the least busy; calls per rank: " + ", ".join(f"{n} {ranks[0][1].get(n, (0,))[0]}" for n in names))
+
+
+if __name__ == "__main__":
+    main()
