@@ -50,12 +50,8 @@ class BoundaryFaces:
                                                        walls.normal, *walls.box, TOLERANCE)
         return np.where(triangle >= 0, walls.boundary[triangle], -1)
 
-    def count(self, crossed: np.ndarray, totals: dict) -> dict:
-        """``totals`` (boundary name → particles) with the boundaries in ``crossed`` (indices into
-        ``names``, as from ``crossed``, each one particle) added."""
+    def count(self, crossed: np.ndarray) -> dict:
+        """Boundary name → particles, of the boundaries in ``crossed`` (indices into ``names``, as
+        from ``crossed``, each one particle)."""
         index, counts = np.unique(crossed, return_counts=True)
-        totals = dict(totals)
-        for i, n in zip(index.tolist(), counts.tolist()):
-            totals[self.names[i]] = totals.get(self.names[i], 0) + int(n)
-        return totals
-
+        return {self.names[i]: int(n) for i, n in zip(index.tolist(), counts.tolist())}

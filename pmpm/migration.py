@@ -24,7 +24,7 @@ def leaving(exits, state: RunState, start: np.ndarray) -> tuple[np.ndarray, dict
         return np.zeros(len(state.particles), bool), {}
     crossed = exits.crossed(start, state.particles.x)
     outside = crossed >= 0
-    return outside, exits.count(crossed[outside], {}) if outside.any() else {}
+    return outside, exits.count(crossed[outside])
 
 
 def remove_outside(exits, state: RunState, start: np.ndarray) -> RunState:

@@ -76,18 +76,13 @@ def advance_owned(comm, partition: Partition, state: ParticleState, walls: Walls
     if dense_likely:
         travel = travel_of(np.where(state.moving, np.linalg.norm(state.v, axis=1), 0.0), dt, reach)
         width = (state.radius + r_max + travel + travel_of(top, dt, reach)) * (1 + 1e-9)
-    halo, local = Halo.build(comm, partition, state, width)
-    bodies = Bodies.of(local)
-    record, dense, acting = find_contacts(bodies, used_walls, dt, reach, settings.restitution, settings.friction,
-                                          kernels, dense_contacts=settings.dense_contacts, owned=halo.owned, comm=comm)
+    search = (comm, partition, state, used_walls, dt, reach, settings, kernels)
+    halo, local, bodies, (record, dense, acting) = ghosts_and_contacts(*search, width)
     if not dense or acting < settings.gather_contacts:
         sent = 0
         if dense_likely:   # the same search over the ghosts of the full reach
             sent = halo.sent
-            halo, local = Halo.build(comm, partition, state, full_width)
-            bodies = Bodies.of(local)
-            record = find_contacts(bodies, used_walls, dt, reach, settings.restitution, settings.friction, kernels,
-                                   dense_contacts=settings.dense_contacts, owned=halo.owned, comm=comm)[0]
+            halo, local, bodies, (record, _, _) = ghosts_and_contacts(*search, full_width)
         step = gathered_step(comm, state, local, halo, record, walls, dt, settings, memory, speed, population)
         step.stats.update(owned=len(state), ghosts=len(local) - len(state), exchanged_bytes=sent + halo.sent)
         return step
@@ -109,6 +104,17 @@ def advance_owned(comm, partition: Partition, state: ParticleState, walls: Walls
     memory = ContactMemory.remember(record, local.id, lam_n, lam_t, mine)
     extra["exchanged_bytes"] = halo.sent
     return ContactStep(summed_stats(comm, counters, extra), memory, walls_after)
+
+
+def ghosts_and_contacts(comm, partition, state, walls, dt, reach, settings, kernels, width) -> tuple:
+    """Collective. The ghosts within ``width`` (per owned particle, m) of each rank's box, and the
+    contacts among the local particles: (halo, local particles, their ``Bodies``, ``find_contacts``'
+    (record, dense, acting))."""
+    halo, local = Halo.build(comm, partition, state, width)
+    bodies = Bodies.of(local)
+    found = find_contacts(bodies, walls, dt, reach, settings.restitution, settings.friction, kernels,
+                          dense_contacts=settings.dense_contacts, owned=halo.owned, comm=comm)
+    return halo, local, bodies, found
 
 
 def reduced(comm, max_of: tuple, sum_of: tuple) -> list:

@@ -57,6 +57,26 @@ def build(a, b, c, lower, cell, dims):
 
 
 @njit(cache=True)
+def triangles_in_box(low, high, lower, cell, dims, start, items, seen, tag, out):
+    """The triangles listed in the cells the box [low, high] overlaps, each once: written to
+    ``out`` (as long as the triangles), their count returned. ``seen`` (per triangle) marks the
+    triangles listed for ``tag`` (the query's number: no clearing between queries)."""
+    first, last = cell_range(low, high, lower, cell, dims)
+    count = 0
+    for i in range(first[0], last[0] + 1):
+        for j in range(first[1], last[1] + 1):
+            for h in range(first[2], last[2] + 1):
+                index = (i * dims[1] + j) * dims[2] + h
+                for at in range(start[index], start[index + 1]):
+                    k = items[at]
+                    if seen[k] != tag:
+                        seen[k] = tag
+                        out[count] = k
+                        count += 1
+    return count
+
+
+@njit(cache=True)
 def near(points, reach, extra, extra_max, lower, cell, dims, start, items, box_low, box_high, centroid, bound):
     """(point, triangle) index pairs that may come within ``reach`` (per point, m) of each other
     when the triangle moves by up to ``extra`` (per triangle, m): their bounding boxes meet and
@@ -64,6 +84,7 @@ def near(points, reach, extra, extra_max, lower, cell, dims, start, items, box_l
     Sorted by point, then triangle. ``extra_max`` widens the cells visited."""
     n = len(points)
     seen = np.full(len(centroid), -1, np.int64)
+    listed = np.empty(len(centroid), np.int64)
     capacity = 16 * n + 16
     found_p = np.empty(capacity, np.int64)
     found_k = np.empty(capacity, np.int64)
@@ -74,39 +95,31 @@ def near(points, reach, extra, extra_max, lower, cell, dims, start, items, box_l
         for d in range(3):
             low[d] = points[p, d] - reach[p] - extra_max
             high[d] = points[p, d] + reach[p] + extra_max
-        first, last = cell_range(low, high, lower, cell, dims)
         begin = count
-        for i in range(first[0], last[0] + 1):
-            for j in range(first[1], last[1] + 1):
-                for h in range(first[2], last[2] + 1):
-                    index = (i * dims[1] + j) * dims[2] + h
-                    for at in range(start[index], start[index + 1]):
-                        k = items[at]
-                        if seen[k] == p:
-                            continue
-                        seen[k] = p
-                        grow = reach[p] + extra[k]
-                        apart = False
-                        for d in range(3):
-                            apart |= (box_low[k, d] - grow > points[p, d]) or (box_high[k, d] + grow < points[p, d])
-                        if apart:
-                            continue
-                        d0 = points[p, 0] - centroid[k, 0]
-                        d1 = points[p, 1] - centroid[k, 1]
-                        d2 = points[p, 2] - centroid[k, 2]
-                        limit = grow + bound[k]
-                        if d0 * d0 + d1 * d1 + d2 * d2 > limit * limit:
-                            continue
-                        if count == capacity:
-                            capacity *= 2
-                            grown_p = np.empty(capacity, np.int64)
-                            grown_k = np.empty(capacity, np.int64)
-                            grown_p[:count] = found_p[:count]
-                            grown_k[:count] = found_k[:count]
-                            found_p, found_k = grown_p, grown_k
-                        found_p[count] = p
-                        found_k[count] = k
-                        count += 1
+        for at in range(triangles_in_box(low, high, lower, cell, dims, start, items, seen, p, listed)):
+            k = listed[at]
+            grow = reach[p] + extra[k]
+            apart = False
+            for d in range(3):
+                apart |= (box_low[k, d] - grow > points[p, d]) or (box_high[k, d] + grow < points[p, d])
+            if apart:
+                continue
+            d0 = points[p, 0] - centroid[k, 0]
+            d1 = points[p, 1] - centroid[k, 1]
+            d2 = points[p, 2] - centroid[k, 2]
+            limit = grow + bound[k]
+            if d0 * d0 + d1 * d1 + d2 * d2 > limit * limit:
+                continue
+            if count == capacity:
+                capacity *= 2
+                grown_p = np.empty(capacity, np.int64)
+                grown_k = np.empty(capacity, np.int64)
+                grown_p[:count] = found_p[:count]
+                grown_k[:count] = found_k[:count]
+                found_p, found_k = grown_p, grown_k
+            found_p[count] = p
+            found_k[count] = k
+            count += 1
         for at in range(begin + 1, count):  # the few triangles of p in order (insertion, in place)
             k = found_k[at]
             back = at - 1
@@ -124,6 +137,7 @@ def first_crossings(start, end, lower, cell, dims, cell_start, items, a, b, c, n
     Möller–Trumbore, s + t d = a + u (b − a) + v (c − a), with u, v ≥ −tol, u + v ≤ 1 + tol and
     t in [−tol, 1 + tol]: a path through an edge or a vertex hits a triangle."""
     seen = np.full(len(a), -1, np.int64)
+    listed = np.empty(len(a), np.int64)
     out = np.full(len(start), -1, np.int64)
     low = np.empty(3)
     high = np.empty(3)
@@ -135,25 +149,17 @@ def first_crossings(start, end, lower, cell, dims, cell_start, items, a, b, c, n
         for i in range(3):
             low[i] = min(start[p, i], end[p, i])
             high[i] = max(start[p, i], end[p, i])
-        first, last = cell_range(low, high, lower, cell, dims)
         best = np.inf
-        for i in range(first[0], last[0] + 1):
-            for j in range(first[1], last[1] + 1):
-                for h in range(first[2], last[2] + 1):
-                    index = (i * dims[1] + j) * dims[2] + h
-                    for at in range(cell_start[index], cell_start[index + 1]):
-                        k = items[at]
-                        if seen[k] == p:
-                            continue
-                        seen[k] = p
-                        apart = False
-                        for e in range(3):
-                            apart |= (box_low[k, e] > high[e]) or (box_high[k, e] < low[e])
-                        if apart or dot(d, vec(normal, k)) >= 0.0:
-                            continue   # inwards, or along the face
-                        t = crossing(s, d, vec(a, k), vec(b, k), vec(c, k), tolerance)
-                        if t < best:
-                            best, out[p] = t, k
+        for at in range(triangles_in_box(low, high, lower, cell, dims, cell_start, items, seen, p, listed)):
+            k = listed[at]
+            apart = False
+            for e in range(3):
+                apart |= (box_low[k, e] > high[e]) or (box_high[k, e] < low[e])
+            if apart or dot(d, vec(normal, k)) >= 0.0:
+                continue   # inwards, or along the face
+            t = crossing(s, d, vec(a, k), vec(b, k), vec(c, k), tolerance)
+            if t < best:
+                best, out[p] = t, k
     return out
 
 
