@@ -60,6 +60,8 @@ def test_set_overrides(tmp_path):
     ("flud.density=1", 'unknown section [flud] (did you mean "fluid"?)'),
     ("particles.add.radius=1", "list of tables"),
     ("novalue", "expected KEY=VALUE"),
+    ("collisions.dense_sweeps=0", "dense_sweeps=0: must be > 0"),
+    ("collisions.dense_sweeps=2.5", "dense_sweeps=2.5: must be an integer"),
 ])
 def test_set_refuses_unknown_keys(tmp_path, override, message):
     with pytest.raises(CaseError) as error:
