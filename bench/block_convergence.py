@@ -50,13 +50,13 @@ def main():
     args = parser.parse_args()
     import meshio
     from hopper import CASE
-    from hopper_mesh import hopper_mesh, particles
+    from hopper_mesh import DENSITY, DIAMETER, hopper_mesh, particles
     budgets = [int(s) for s in args.sweeps.split(",")]
     folder = Path(tempfile.mkdtemp(prefix="pmpm_block_"))
     meshio.write(str(folder / "hopper.msh"), hopper_mesh(), file_format="gmsh22", binary=False)
     xyz = particles(args.count)
-    np.savetxt(folder / "p.txt", np.column_stack([xyz, np.full(len(xyz), 0.002), np.full(len(xyz), 2500.0)]),
-               header="x y z radius density", comments="")
+    table = np.column_stack([xyz, np.full(len(xyz), DIAMETER / 2), np.full(len(xyz), DENSITY)])
+    np.savetxt(folder / "p.txt", table, header="x y z radius density", comments="")
     (folder / "case.toml").write_text(CASE.format(end_time=START, dt=DT, output_every=START,
                                                   checkpoint=f"checkpoint_every = {START}", orifice="outlet",
                                                   particles="p.txt"))
@@ -72,7 +72,7 @@ def main():
     scale = np.sqrt((v_ref ** 2).sum(1).mean())
     spread = start[:, 2:4].max(0) - start[:, 2:4].min(0)
     axis = int(np.argmax(spread))
-    near = np.abs(x[:, axis] - np.median(start[:, 2 + axis])) < 2 * 0.004
+    near = np.abs(x[:, axis] - np.median(start[:, 2 + axis])) < 2 * DIAMETER
     print(f"{len(reference)} particles at t = {START} s; one step of {DT} s; reference: {REFERENCE_SWEEPS} sweeps "
           f"on 1 rank; cut across {'xyz'[axis]}, {near.sum()} particles within 2 d of it")
     print(f"{'ranks':>5} {'sweeps':>6} {'all':>7} {'near cut':>9} {'beyond':>7}   (RMS |v - v_ref| / RMS |v_ref|)")

@@ -590,8 +590,9 @@ def test_build_walls_and_settings():
     settings = collision_settings(case)
     assert settings.restitution == 0.7 and settings.rest_speed == pytest.approx(3 * G * 1e-3)
     assert (settings.dense_sweeps, settings.gather_contacts) == (20, 4096)   # (keys absent: the defaults)
-    tuned = collision_settings(fake_case(collisions=Section({"restitution": 0.7, "friction": 0.4, "rolling_friction": 0.0,
-                                                              "dense_sweeps": 45, "gather_contacts": 0})))
+    tuned = collision_settings(fake_case(collisions=Section({"restitution": 0.7, "friction": 0.4,
+                                                              "rolling_friction": 0.0, "dense_sweeps": 45,
+                                                              "gather_contacts": 0})))
     assert (tuned.dense_sweeps, tuned.gather_contacts) == (45, 0)
     defaults = build_walls(fake_case(), FakeMesh())
     assert len(defaults) == 12 and np.all(defaults.restitution == 0.9) and np.all(defaults.friction == 0.3)
