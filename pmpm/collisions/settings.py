@@ -74,7 +74,6 @@ def collision_settings(case) -> CollisionSettings:
     substeps = case.coupling.substeps if getattr(case, "coupling", None) is not None else 1
     g = float(np.linalg.norm(case.run.gravity))
     rest = 3.0 * g * case.run.dt / substeps
-    section = getattr(case, "collisions", None)
-    limits = {name: getattr(section, name, getattr(CollisionSettings, name)) if section is not None
-              else getattr(CollisionSettings, name) for name in ("dense_sweeps", "gather_contacts")}
+    section = getattr(case, "collisions", None)   # (absent keys: the dataclass's defaults)
+    limits = {name: getattr(section, name) for name in ("dense_sweeps", "gather_contacts") if hasattr(section, name)}
     return CollisionSettings(**coefficients, rest_speed=rest if rest > 0 else 1e-9, **limits)
