@@ -244,6 +244,8 @@ class Halo:
     owners' (and zeroes them): one message each way per neighbour, none between ranks that share
     no ghost. ``merge`` takes one message each way between ranks that hold a particle together:
     each holder sends its change to the others, and all add the changes in rank order.
+    ``post_shared`` / ``take_shared`` pass the shared rows' values on from one rank to the next, in
+    the order of ``colours`` (the block Gauss–Seidel's sweeps).
     """
 
     comm: object
@@ -339,24 +341,44 @@ class Halo:
         self.to_ghosts(array)
         return array
 
-    def holders(self, touching: np.ndarray) -> np.ndarray:
-        """Collective. (n_local,) for each particle, how many of the ranks holding it have ``touching``
-        (bool per local row) true for it, this one included; 1 where none has."""
-        count = touching.astype(float)[:, None]
-        self.merge((np.zeros_like(count),), count)
-        return np.maximum(np.rint(count[:, 0]), 1.0)
+    def colours(self) -> np.ndarray:
+        """Collective. (comm.size,) a colour per rank, ranks holding a particle together coloured
+        apart (greedy in rank order; two ranks: 0 and 1), the same on every rank."""
+        neighbours = self.comm.allgather(sorted(self.shared_at))
+        colour = np.zeros(self.comm.size, np.int64)
+        for rank in range(self.comm.size):
+            taken = {int(colour[other]) for other in neighbours[rank] if other < rank}
+            taken |= {int(colour[other]) for other in range(rank) if rank in neighbours[other]}
+            colour[rank] = min(set(range(len(taken) + 1)) - taken)
+        return colour
 
-    def merge(self, reference: tuple, *arrays: np.ndarray, split: np.ndarray | None = None) -> None:
+    def post_shared(self, ranks, *arrays: np.ndarray) -> list:
+        """Send each of ``ranks`` the rows of ``arrays`` (2-D) of the particles it holds too, side by
+        side, without waiting; returns the requests (wait on them before changing those rows' sources)."""
+        requests = []
+        for r in ranks:
+            block = _rows_of(self.shared_rows[self.shared_at[r]], arrays)
+            self.sent += block.nbytes
+            requests.append((self.comm.Isend(block, dest=r, tag=79), block))
+        return requests
+
+    def take_shared(self, ranks, *arrays: np.ndarray) -> None:
+        """Receive from each of ``ranks``, in that order, what its ``post_shared`` sent, and set the
+        rows of the particles held together to it (the later rank's value where two send one)."""
+        width = sum(array.shape[1] for array in arrays)
+        for r in ranks:
+            rows = self.shared_rows[self.shared_at[r]]
+            block = np.empty((len(rows), width))
+            self.comm.Recv(block, source=r, tag=79)
+            _set_rows(rows, block, arrays)
+
+    def merge(self, reference: tuple, *arrays: np.ndarray) -> None:
         """Collective. Copies of particles changed by the ranks that hold them: each holder's change
         since ``reference`` (the arrays as they were at the last merge, the same on every holder) is
         sent to the other holders, and every holder sets reference + the changes of all, added in
         rank order (so the copies stay equal to the bit); the reference arrays' shared rows take the
-        merged values. Rows held here only are left as they are, in both. The block Gauss–Seidel's
-        exchange per sweep: it touches the shared rows only.
-
-        ``split`` (n_local,): the number of holders each particle's mass is split among (mass
-        splitting, Tonge et al. 2012): each holder's copy had 1/split of the mass, and the merged
-        value is reference + the mean of the changes (so still reference + Σ impulses / mass)."""
+        merged values. Rows held here only are left as they are, in both. It touches the shared rows
+        only (the warm start of the block Gauss–Seidel: each rank's remembered impulses summed)."""
         rows = self.shared_rows
         if len(rows) == 0:
             return
@@ -379,8 +401,34 @@ class Halo:
         MPI.Request.Waitall(requests)
         below = int(edges[np.searchsorted(neighbours, self.comm.rank)])
         positions = np.concatenate([np.zeros(0, np.int64), *at])
-        _apply_merged(rows, arrays, reference, change, received, positions, below,
-                      np.ones(0) if split is None else split)
+        _apply_merged(rows, arrays, reference, change, received, positions, below)
+
+
+@njit(cache=True)
+def _rows_of(rows, arrays):
+    """(len(rows), Σ widths): the arrays' ``rows`` side by side."""
+    width = 0
+    for k in range(len(arrays)):
+        width += arrays[k].shape[1]
+    out = np.empty((len(rows), width))
+    column = 0
+    for k in range(len(arrays)):
+        for i in range(len(rows)):
+            for j in range(arrays[k].shape[1]):
+                out[i, column + j] = arrays[k][rows[i], j]
+        column += arrays[k].shape[1]
+    return out
+
+
+@njit(cache=True)
+def _set_rows(rows, block, arrays):
+    """The inverse of ``_rows_of``: the arrays' ``rows`` set to ``block``'s columns."""
+    column = 0
+    for k in range(len(arrays)):
+        for i in range(len(rows)):
+            for j in range(arrays[k].shape[1]):
+                arrays[k][rows[i], j] = block[i, column + j]
+        column += arrays[k].shape[1]
 
 
 @njit(cache=True)
@@ -401,11 +449,11 @@ def _changes(rows, arrays, reference):
 
 
 @njit(cache=True)
-def _apply_merged(rows, arrays, reference, change, received, at, below, split):
+def _apply_merged(rows, arrays, reference, change, received, at, below):
     """Each array and its reference set, on ``rows``, to reference + the sum of every holder's
-    change, divided by ``split`` (per local row; empty: by 1). The sum is taken in rank order, so
-    that every holder gets the same bits: the ``received`` rows (at positions ``at`` of ``rows``) of
-    lower ranks (the first ``below``), this rank's ``change``, then the higher ranks'."""
+    change. The sum is taken in rank order, so that every holder gets the same bits: the
+    ``received`` rows (at positions ``at`` of ``rows``) of lower ranks (the first ``below``), this
+    rank's ``change``, then the higher ranks'."""
     total = np.zeros_like(change)
     width = change.shape[1]
     for i in range(below):
@@ -423,8 +471,7 @@ def _apply_merged(rows, arrays, reference, change, received, at, below, split):
         for i in range(len(rows)):
             r = rows[i]
             for j in range(now.shape[1]):
-                step = total[i, column + j] if len(split) == 0 else total[i, column + j] / split[r]
-                now[r, j] = before[r, j] = before[r, j] + step
+                now[r, j] = before[r, j] = before[r, j] + total[i, column + j]
         column += now.shape[1]
 
 

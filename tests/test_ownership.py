@@ -136,6 +136,45 @@ def test_resting_column_across_the_cut(comm, dense_contacts):
 
 
 @pytest.mark.mpi
+def test_a_block_solve_across_the_cut_converges_as_one_rank(comm):
+    """A pack of 216 touching balls on a floor, cut through its middle, stirred (0.2 m/s at random)
+    twice: after a first step (converged, giving the contact memory), one dense step with 10 sweeps
+    on 2 ranks (block Gauss–Seidel over the ranks) is within 10 % as far from the converged solution
+    (2000 sweeps, 1 rank) as the same step with 10 sweeps on 1 rank (RMS velocity error): the ranks'
+    sweeps feed each other's in one order, as one rank's do (summing the ranks' changes after each
+    round of sweeps instead, Jacobi across the cut, was 1.5 × as far here)."""
+    r, dt = 0.01, 1e-3
+    grid = np.stack(np.meshgrid(*(np.arange(6),) * 3, indexing="ij"), -1).reshape(-1, 3)
+    stir = np.random.default_rng(3).normal(0.0, 0.2, (2, len(grid), 3))
+    state = particles(grid * 2 * r + [-5 * r, -5 * r, r], v=stir[0], radius=r)
+    settings = CollisionSettings(restitution=0.5, friction=0.5, rest_speed=3 * G * dt, dense_contacts=1,
+                                 gather_contacts=0, dense_sweeps=10)
+    memory = advance_with_collisions(state, floor(), dt, replace(settings, dense_sweeps=2000)).memory
+    state.v[:] += stir[1]
+    errors = {}
+    for label, sweeps in (("reference", 2000), ("one", 10)):
+        whole = state.copy()
+        advance_with_collisions(whole, floor(), dt, replace(settings, dense_sweeps=sweeps), memory)
+        errors[label] = whole.v
+    partition = halves(comm)
+    owned = state.without(partition.owner_of(state.x) != comm.rank)
+    mine = np.isin(memory.first_id, owned.id)
+    memory = ContactMemory(memory.first_id[mine], memory.second_id[mine], memory.normal_impulse[mine],
+                           memory.tangential_impulse[mine])
+    advance_owned(comm, partition, owned, floor(), dt, settings, memory)
+    result = gather(comm, owned)
+    np.testing.assert_array_equal(result.id, state.id)
+    reference = errors.pop("reference")
+    errors["two"] = result.v
+
+    def rms(a):
+        return np.sqrt((a ** 2).sum(axis=1).mean())
+    one, two = rms(errors["one"] - reference), rms(errors["two"] - reference)
+    assert one > 1e-3 * rms(reference), "10 sweeps are not converged (the comparison means something)"
+    assert two <= 1.1 * one, (one, two)
+
+
+@pytest.mark.mpi
 def test_particles_in_one_half_leave_ghosts_near_the_cut_only(comm):
     """A bed of 80 balls in x < 0 (rank 0's half): rank 1 owns none, and its ghosts are the balls
     within contact range of the cut (2 r + the search's reach), not the others."""

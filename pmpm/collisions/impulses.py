@@ -138,9 +138,7 @@ def sweep(rows, first, second, normal, r_first, r_second, u_wall, target, mu, in
     previous = 0.0
     done = 0
     for s in range(sweeps):
-        for r in range(count):
-            c = rows[r]
-            before[r, 0], before[r, 1], before[r, 2], before[r, 3] = lam_n[c], lam_t[c, 0], lam_t[c, 1], lam_t[c, 2]
+        keep_impulses(rows, lam_n, lam_t, before)
         for k in range(n_members):
             for d in range(3):
                 start_v[k, d], start_v[k, 3 + d] = v[members[k], d], w[members[k], d]
@@ -157,30 +155,55 @@ def sweep(rows, first, second, normal, r_first, r_second, u_wall, target, mu, in
             largest = max(largest, change)
         if largest <= tol:
             break
-        size = 0.0
-        for r in range(count):
-            c = rows[r]
-            size += ((lam_n[c] - before[r, 0]) ** 2 + (lam_t[c, 0] - before[r, 1]) ** 2
-                     + (lam_t[c, 1] - before[r, 2]) ** 2 + (lam_t[c, 2] - before[r, 3]) ** 2)
+        size = impulse_change(rows, lam_n, lam_t, before)
         beta = size / previous if previous > 0 else 2.0  # 2: restart
         previous = size
-        for r in range(count):
-            c = rows[r]
-            change = (lam_n[c] - before[r, 0], lam_t[c, 0] - before[r, 1], lam_t[c, 1] - before[r, 2],
-                      lam_t[c, 2] - before[r, 3])
-            step = (0.0, 0.0, 0.0, 0.0)
-            if beta <= 1.0:
-                step = (beta * direction[r, 0], beta * direction[r, 1], beta * direction[r, 2], beta * direction[r, 3])
-                lam_n[c] += step[0]
-                lam_t[c, 0] += step[1]
-                lam_t[c, 1] += step[2]
-                lam_t[c, 2] += step[3]
-                n = vec(normal, c)
-                J = (step[0] * n[0] + step[1], step[0] * n[1] + step[2], step[0] * n[2] + step[3])
-                apply_impulse(first[c], second[c], J, n, r_first[c], r_second[c], inv_m, inv_i, v, w)
-            for d in range(4):
-                direction[r, d] = step[d] + change[d] if beta <= 1.0 else 0.0
+        conjugate_step(rows, beta, before, direction, first, second, normal, r_first, r_second, inv_m, inv_i, v, w,
+                       lam_n, lam_t)
     return done
+
+
+@njit(cache=True)
+def keep_impulses(rows, lam_n, lam_t, before):
+    """before[r] = (λ_n, λ_t) of contact rows[r]: the impulses before a sweep."""
+    for r in range(len(rows)):
+        c = rows[r]
+        before[r, 0], before[r, 1], before[r, 2], before[r, 3] = lam_n[c], lam_t[c, 0], lam_t[c, 1], lam_t[c, 2]
+
+
+@njit(cache=True)
+def impulse_change(rows, lam_n, lam_t, before):
+    """|r_k|²: the squared change of the impulses of contacts ``rows`` since ``before`` (N² s²)."""
+    size = 0.0
+    for r in range(len(rows)):
+        c = rows[r]
+        size += ((lam_n[c] - before[r, 0]) ** 2 + (lam_t[c, 0] - before[r, 1]) ** 2
+                 + (lam_t[c, 1] - before[r, 2]) ** 2 + (lam_t[c, 2] - before[r, 3]) ** 2)
+    return size
+
+
+@njit(cache=True)
+def conjugate_step(rows, beta, before, direction, first, second, normal, r_first, r_second, inv_m, inv_i, v, w,
+                   lam_n, lam_t):
+    """The nonsmooth conjugate gradient step after a sweep (``sweep``'s notes): if β <= 1 the impulses
+    of ``rows`` move by β p and v, ω with them, and p ← β p + r_k (the sweep's change since
+    ``before``); else p ← 0 (a restart). ``direction`` (len(rows), 4): p, updated in place."""
+    for r in range(len(rows)):
+        c = rows[r]
+        change = (lam_n[c] - before[r, 0], lam_t[c, 0] - before[r, 1], lam_t[c, 1] - before[r, 2],
+                  lam_t[c, 2] - before[r, 3])
+        step = (0.0, 0.0, 0.0, 0.0)
+        if beta <= 1.0:
+            step = (beta * direction[r, 0], beta * direction[r, 1], beta * direction[r, 2], beta * direction[r, 3])
+            lam_n[c] += step[0]
+            lam_t[c, 0] += step[1]
+            lam_t[c, 1] += step[2]
+            lam_t[c, 2] += step[3]
+            n = vec(normal, c)
+            J = (step[0] * n[0] + step[1], step[0] * n[1] + step[2], step[0] * n[2] + step[3])
+            apply_impulse(first[c], second[c], J, n, r_first[c], r_second[c], inv_m, inv_i, v, w)
+        for d in range(4):
+            direction[r, d] = step[d] + change[d] if beta <= 1.0 else 0.0
 
 
 @njit(cache=True)

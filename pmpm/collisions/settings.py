@@ -55,7 +55,6 @@ class CollisionSettings:
 
 
 COLD_SWEEPS = 20  # × dense_sweeps for a dense step without any remembered impulse
-LOCAL_SWEEPS = 2  # on several ranks, a rank's sweeps between two merges of the shadow copies (docs/collisions.md)
 
 
 def collision_coefficients(case) -> dict:

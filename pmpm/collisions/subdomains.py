@@ -37,7 +37,7 @@ from . import jit
 from .record import ContactMemory
 from .search import find_contacts, travel_of, wall_arrays
 from .dense import bodies_in, finish, targets
-from .settings import COLD_SWEEPS, ENERGY_TOL, LOCAL_SWEEPS, SEARCH_SLACK, SWEEP_TOL, CollisionSettings
+from .settings import COLD_SWEEPS, ENERGY_TOL, SEARCH_SLACK, SWEEP_TOL, CollisionSettings
 from .solver import Bodies, ContactStep, advance_with_collisions, remove_overlaps
 from .stats import CLAMPS, DEPOSITED, EXTRA, NAMES, SWEEPS, as_dict, new_counters
 from .walls import Walls
@@ -208,20 +208,15 @@ def dense_blocks(halo: Halo, bodies, record, rows, warm_n, warm_t, settings, dt,
     tol = SWEEP_TOL * settings.rest_speed if settings.rest_speed > 0 else 1e-12 * scale
     remembered, driven, tol, energy = reduced(comm, max_of=(float(lam_n.any()), float(driven.any()), tol),
                                               sum_of=(impulses.kinetic_energy(owned_members, inv_m, inv_i, v, w),))
-    # a particle in the contacts of several ranks: its mass split among them (Tonge et al. 2012)
-    in_contact = np.zeros(n, bool)
-    in_contact[members] = True
-    split = np.append(halo.holders(in_contact), 1.0)
-    light_m, light_i = inv_m * split, inv_i * split
     reference = (v.copy(), w.copy())
     if remembered:
-        impulses.warm_start(rows, first, second, normal, r_first, r_second, record.friction, light_m, light_i, v, w,
+        impulses.warm_start(rows, first, second, normal, r_first, r_second, record.friction, inv_m, inv_i, v, w,
                             lam_n, lam_t)
-        halo.merge(reference, v, w, split=split[:n])
+        halo.merge(reference, v, w)
     budget = settings.dense_sweeps if remembered else COLD_SWEEPS * settings.dense_sweeps
     contacts = (first, second, normal, r_first, r_second, record.wall_velocity)
-    sweeps = block_sweeps(halo, rows, contacts, target, record.friction, (light_m, light_i, v, w), split[:n], lam_n,
-                          lam_t, reference, budget, tol, kernels)
+    sweeps = block_sweeps(halo, rows, contacts, target, record.friction, (inv_m, inv_i, v, w), lam_n, lam_t,
+                          budget, tol, kernels)
     after = comm.allreduce(impulses.kinetic_energy(owned_members, inv_m, inv_i, v, w))
     if not driven and after > energy * (1 + ENERGY_TOL) + 1e-300:
         # Newton's law over simultaneous contacts, or the ranks' blocks, can make energy: every
@@ -236,17 +231,26 @@ def dense_blocks(halo: Halo, bodies, record, rows, warm_n, warm_t, settings, dt,
     return lam_n, lam_t
 
 
-def block_sweeps(halo: Halo, rows, contacts, target, mu, bodies, split, lam_n, lam_t, reference, budget: int,
-                 tol: float, kernels) -> int:
-    """Collective. Rounds of ``LOCAL_SWEEPS`` sweeps of this rank's contacts ``rows``, the shadow
-    copies merged after each round, until no owned body's contact-point velocity changed by more
-    than ``tol`` (m/s) in a round, on any rank, or ``budget`` sweeps; returns the sweeps made (the
-    same on every rank). ``bodies``: (1/m, 1/I, v, ω) with the masses split among the ranks sharing
-    a particle (``split``, per local row). A round's test is reduced over the ranks while the next
-    round runs (a nonblocking reduction, so no sync of its own): the rounds stop one round after the
-    one that converged."""
+def block_sweeps(halo: Halo, rows, contacts, target, mu, bodies, lam_n, lam_t, budget: int, tol: float,
+                 kernels) -> int:
+    """Collective. Sweeps of this rank's contacts ``rows`` in one order over every rank's, until no
+    owned body's contact-point velocity changed by more than ``tol`` (m/s) in a sweep, on any rank,
+    or ``budget`` sweeps; returns the sweeps made (the same on every rank). ``bodies``: (1/m, 1/I,
+    v, ω) per local row.
+
+    A sweep is Gauss–Seidel over the ranks' contacts together: the ranks are coloured so that two
+    holding a particle together differ, and a rank sweeps its *border* contacts (those touching a
+    particle another rank holds) once the lower colours have sent theirs, sends its copies of the
+    shared particles on, then sweeps its *inner* contacts (touching no shared particle) while the
+    higher colours sweep their border, whose copies it takes at the end. Inner contacts of different
+    ranks share no body, so the sweep is that of one rank over the contacts ordered by colour
+    (border before inner within a rank), every contact seeing the velocities its bodies have just
+    then, and the copies stay equal to the bit. A sweep's test is reduced over the ranks while the
+    next sweep runs (a nonblocking reduction): the sweeps stop one sweep after the one that converged.
+    """
     first, second, normal, r_first, r_second, u_wall = contacts
     inv_m, inv_i, v, w = bodies
+    impulses = kernels.impulses
     a, b = first[rows], second[rows]
     k_n = inv_m[a] + inv_m[b]
     k_t = k_n + inv_i[a] * r_first[rows] ** 2 + inv_i[b] * r_second[rows] ** 2
@@ -256,20 +260,40 @@ def block_sweeps(halo: Halo, rows, contacts, target, mu, bodies, split, lam_n, l
     arm[b] = r_second[rows]   # a body's radius wherever it touches (0 for the world)
     arm[a] = r_first[rows]
     watched = np.flatnonzero(np.append(halo.owned, False) & (inv_m > 0) & (arm > 0))
-    done, pending, largest = 0, None, np.zeros(1)
+    shared = np.zeros(len(inv_m), bool)
+    shared[halo.shared_rows] = True
+    border = shared[a] | shared[b]
+    parts = [(rows[where], inv_kn[where], inv_kt[where]) for where in (border, ~border)]
+    colour = halo.colours()
+    neighbours = sorted(halo.shared_at, key=lambda r: colour[r])
+    lower = [r for r in neighbours if colour[r] < colour[halo.comm.rank]]
+    higher = [r for r in neighbours if colour[r] > colour[halo.comm.rank]]
+    before, direction = np.empty((len(rows), 4)), np.zeros((len(rows), 4))
+    done, pending, largest, previous, beta = 0, None, np.zeros(1), 0.0, None
     saved = np.hstack([v[watched], w[watched]])
     while done < budget:
-        for _ in range(min(LOCAL_SWEEPS, budget - done)):
-            kernels.impulses.sweep_once(rows, inv_kn, inv_kt, first, second, normal, r_first, r_second, u_wall,
-                                        target, mu, inv_m, inv_i, v, w, lam_n, lam_t)
-            done += 1
-        halo.merge(reference, v, w, split=split)
-        if pending is not None:   # the test of the round before this one, reduced meanwhile
+        halo.take_shared(lower, v, w)
+        if beta is not None:   # the last sweep's conjugate-gradient step, after the lower colours' sweep
+            impulses.conjugate_step(rows, beta, before, direction, first, second, normal, r_first, r_second, inv_m,
+                                    inv_i, v, w, lam_n, lam_t)
+        impulses.keep_impulses(rows, lam_n, lam_t, before)
+        impulses.sweep_once(*parts[0], first, second, normal, r_first, r_second, u_wall, target, mu, inv_m, inv_i, v,
+                            w, lam_n, lam_t)
+        posted = halo.post_shared(neighbours, v, w)
+        impulses.sweep_once(*parts[1], first, second, normal, r_first, r_second, u_wall, target, mu, inv_m, inv_i, v,
+                            w, lam_n, lam_t)
+        halo.take_shared(higher, v, w)
+        MPI.Request.Waitall([request for request, _ in posted])
+        done += 1
+        if pending is not None:   # the test of the sweep before this one, reduced meanwhile
             pending.Wait()
             if largest[0] <= tol:
                 break
-        largest = np.array([kernels.impulses.change_since(watched, v, w, arm, saved)])
+        largest = np.array([impulses.change_since(watched, v, w, arm, saved)])
         pending = halo.comm.Iallreduce(MPI.IN_PLACE, largest, op=MPI.MAX)
+        size = impulses.impulse_change(rows, lam_n, lam_t, before)   # this rank's β (a global one: no better)
+        beta = size / previous if previous > 0 else 2.0
+        previous = size
     if pending is not None:
         pending.Wait()
     return done
