@@ -10,7 +10,7 @@ import numpy as np
 
 from .collisions import ContactMemory
 from .errors import NumericalError
-from .ownership import IMBALANCE, bisect, exchange_groups, particle_rows, particle_work, particles_of
+from .ownership import IMBALANCE, bisect, exchange_groups, particle_rows, particles_of
 from .particles import ParticleState
 from .state import RunState
 
@@ -69,18 +69,15 @@ def migrate_particles(comm, exits, state: RunState, start: np.ndarray, dt: float
     changed rank) one exchange: the particles that left the domain are removed (``leaving``, the
     counts summed over ranks), the ones whose centre entered another rank's box go to it, with
     their last hydrodynamic force and the contact memory of the contacts whose lower-id particle
-    they are; when a rank's work (``ownership.particle_work``: its particles and their remembered
-    contacts) is more than ``ownership.IMBALANCE`` × the mean, the boxes are bisected again by
-    work first (with ``rebalance``; in a flow the boxes are the mesh's, and stay). A particle whose
+    they are; when a rank owns more than ``ownership.IMBALANCE`` × the mean, the boxes are bisected
+    again first (with ``rebalance``; in a flow the boxes are the mesh's, and stay). A particle whose
     state is not finite stops the run on every rank (NumericalError)."""
     partition = state.partition
     outside, through = leaving(exits, state, start)
     particles = state.particles.without(outside)
     force, torque = state.hydro_force[~outside], state.hydro_torque[~outside]
     owner = partition.owner_of(particles.x)
-    memory = state.contacts if state.contacts is not None else ContactMemory.empty()
-    work = particle_work(particles.id, memory.first_id, memory.second_id)
-    gathered = comm.allgather(((float(work.sum()), int((owner != comm.rank).sum()), int(outside.sum()),
+    gathered = comm.allgather(((len(particles), int((owner != comm.rank).sum()), int(outside.sum()),
                                 first_not_finite(particles)), through))
     counts = np.array([rank_counts for rank_counts, _ in gathered])
     if (counts[:, 3] >= 0).any():
@@ -90,7 +87,7 @@ def migrate_particles(comm, exits, state: RunState, start: np.ndarray, dt: float
         removed_through = merged(removed_through, rank_through)
     state = replace(state, removed=state.removed + int(counts[:, 2].sum()), removed_through=removed_through)
     if rebalance and counts[:, 0].max() > IMBALANCE * max(counts[:, 0].mean(), 1.0) and counts[:, 0].max() >= 64:
-        partition = bisect(comm, particles.x, work=work)
+        partition = bisect(comm, particles.x)
         owner = partition.owner_of(particles.x)
     elif counts[:, 1].sum() == 0:
         return replace(state, particles=particles, hydro_force=force, hydro_torque=torque)
