@@ -207,14 +207,17 @@ def conjugate_step(rows, beta, before, direction, first, second, normal, r_first
 
 
 @njit(cache=True)
-def sweep_once(rows, inv_kn, inv_kt, first, second, normal, r_first, r_second, u_wall, target, mu, inv_m, inv_i, v, w,
-               lam_n, lam_t):
-    """One projected Gauss–Seidel sweep over contacts ``rows`` (as ``sweep``, without its stopping
-    test and conjugate-gradient step): the block sweep of a rank between two exchanges of its shadow
-    copies' velocities (``subdomains``). ``inv_kn``, ``inv_kt`` (len(rows),): 1/k_n, 1/k_t per row."""
+def sweep_keeping(rows, inv_kn, inv_kt, before, first, second, normal, r_first, r_second, u_wall, target, mu, inv_m,
+                  inv_i, v, w, lam_n, lam_t):
+    """One projected Gauss–Seidel sweep over contacts ``rows`` (``sweep`` taken apart: a rank's block of
+    contacts between two exchanges of shadow copies, ``subdomains``), their impulses before it kept in
+    ``before`` (len(rows), 4). ``inv_kn``, ``inv_kt`` (len(rows),): 1/k_n, 1/k_t per row. Returns
+    |r_k|², the squared change the sweep made to the impulses."""
+    keep_impulses(rows, lam_n, lam_t, before)
     for r in range(len(rows)):
         project(rows[r], inv_kn[r], inv_kt[r], first, second, normal, r_first, r_second, u_wall, target, mu, inv_m,
                 inv_i, v, w, lam_n, lam_t)
+    return impulse_change(rows, lam_n, lam_t, before)
 
 
 @njit(cache=True)

@@ -263,39 +263,38 @@ def block_sweeps(halo: Halo, rows, contacts, target, mu, bodies, lam_n, lam_t, b
     shared = np.zeros(len(inv_m), bool)
     shared[halo.shared_rows] = True
     border = shared[a] | shared[b]
-    parts = [(rows[where], inv_kn[where], inv_kt[where]) for where in (border, ~border)]
+    # per part, border then inner: rows, 1/k_n, 1/k_t, impulses before a sweep, conjugate direction
+    parts = [(rows[where], inv_kn[where], inv_kt[where], np.empty((where.sum(), 4)), np.zeros((where.sum(), 4)))
+             for where in (border, ~border)]
     colour = halo.colours()
     neighbours = sorted(halo.shared_at, key=lambda r: colour[r])
     lower = [r for r in neighbours if colour[r] < colour[halo.comm.rank]]
     higher = [r for r in neighbours if colour[r] > colour[halo.comm.rank]]
-    before, direction = np.empty((len(rows), 4)), np.zeros((len(rows), 4))
-    done, pending, largest, previous, beta = 0, None, np.zeros(1), 0.0, None
+    contacts = (first, second, normal, r_first, r_second, u_wall, target, mu, inv_m, inv_i, v, w, lam_n, lam_t)
+    stepped = (first, second, normal, r_first, r_second, inv_m, inv_i, v, w, lam_n, lam_t)
+    (border_rows, *border), (inner_rows, *inner) = parts
+    done, pending, largest, previous, beta, stop = 0, None, np.zeros(1), 0.0, 2.0, False
     saved = np.hstack([v[watched], w[watched]])
-    while done < budget:
+    while not stop:
+        # the border's conjugate step (of the sweep before) and sweep after the lower colours', then the
+        # inner sweep and its conjugate step (no other rank's body) while the higher colours sweep theirs
         halo.take_shared(lower, v, w)
-        if beta is not None:   # the last sweep's conjugate-gradient step, after the lower colours' sweep
-            impulses.conjugate_step(rows, beta, before, direction, first, second, normal, r_first, r_second, inv_m,
-                                    inv_i, v, w, lam_n, lam_t)
-        impulses.keep_impulses(rows, lam_n, lam_t, before)
-        impulses.sweep_once(*parts[0], first, second, normal, r_first, r_second, u_wall, target, mu, inv_m, inv_i, v,
-                            w, lam_n, lam_t)
+        impulses.conjugate_step(border_rows, beta, border[2], border[3], *stepped)
+        size = impulses.sweep_keeping(border_rows, *border[:3], *contacts)
         posted = halo.post_shared(neighbours, v, w)
-        impulses.sweep_once(*parts[1], first, second, normal, r_first, r_second, u_wall, target, mu, inv_m, inv_i, v,
-                            w, lam_n, lam_t)
-        halo.take_shared(higher, v, w)
-        MPI.Request.Waitall([request for request, _ in posted])
+        size += impulses.sweep_keeping(inner_rows, *inner[:3], *contacts)
         done += 1
         if pending is not None:   # the test of the sweep before this one, reduced meanwhile
             pending.Wait()
-            if largest[0] <= tol:
-                break
-        largest = np.array([impulses.change_since(watched, v, w, arm, saved)])
-        pending = halo.comm.Iallreduce(MPI.IN_PLACE, largest, op=MPI.MAX)
-        size = impulses.impulse_change(rows, lam_n, lam_t, before)   # this rank's β (a global one: no better)
-        beta = size / previous if previous > 0 else 2.0
+        stop = done == budget or (pending is not None and largest[0] <= tol)
+        beta = size / previous if previous > 0 else 2.0   # this rank's β (one over the ranks: no better)
         previous = size
-    if pending is not None:
-        pending.Wait()
+        if not stop:
+            impulses.conjugate_step(inner_rows, beta, inner[2], inner[3], *stepped)
+        halo.take_shared(higher, v, w)
+        MPI.Request.Waitall([request for request, _ in posted])
+        largest = np.array([impulses.change_since(watched, v, w, arm, saved)])
+        pending = None if stop else halo.comm.Iallreduce(MPI.IN_PLACE, largest, op=MPI.MAX)
     return done
 
 
