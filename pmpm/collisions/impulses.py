@@ -184,10 +184,11 @@ def impulse_change(rows, lam_n, lam_t, before):
 
 @njit(cache=True)
 def conjugate_step(rows, beta, before, direction, first, second, normal, r_first, r_second, inv_m, inv_i, v, w,
-                   lam_n, lam_t):
+                   lam_n, lam_t, keep=False):
     """The nonsmooth conjugate gradient step after a sweep (``sweep``'s notes): if β <= 1 the impulses
     of ``rows`` move by β p and v, ω with them, and p ← β p + r_k (the sweep's change since
-    ``before``); else p ← 0 (a restart). ``direction`` (len(rows), 4): p, updated in place."""
+    ``before``); else p ← 0 (a restart). ``direction`` (len(rows), 4): p, updated in place; with
+    ``keep``, ``before`` takes the impulses after the step (those the next sweep starts from)."""
     for r in range(len(rows)):
         c = rows[r]
         change = (lam_n[c] - before[r, 0], lam_t[c, 0] - before[r, 1], lam_t[c, 1] - before[r, 2],
@@ -204,20 +205,25 @@ def conjugate_step(rows, beta, before, direction, first, second, normal, r_first
             apply_impulse(first[c], second[c], J, n, r_first[c], r_second[c], inv_m, inv_i, v, w)
         for d in range(4):
             direction[r, d] = step[d] + change[d] if beta <= 1.0 else 0.0
+        if keep:
+            before[r, 0], before[r, 1], before[r, 2], before[r, 3] = lam_n[c], lam_t[c, 0], lam_t[c, 1], lam_t[c, 2]
 
 
 @njit(cache=True)
-def sweep_keeping(rows, inv_kn, inv_kt, before, first, second, normal, r_first, r_second, u_wall, target, mu, inv_m,
-                  inv_i, v, w, lam_n, lam_t):
+def sweep_from(rows, inv_kn, inv_kt, before, first, second, normal, r_first, r_second, u_wall, target, mu, inv_m,
+               inv_i, v, w, lam_n, lam_t):
     """One projected Gauss–Seidel sweep over contacts ``rows`` (``sweep`` taken apart: a rank's block of
-    contacts between two exchanges of shadow copies, ``subdomains``), their impulses before it kept in
-    ``before`` (len(rows), 4). ``inv_kn``, ``inv_kt`` (len(rows),): 1/k_n, 1/k_t per row. Returns
-    |r_k|², the squared change the sweep made to the impulses."""
-    keep_impulses(rows, lam_n, lam_t, before)
+    contacts between two exchanges of shadow copies, ``subdomains``), whose impulses before it are
+    ``before`` (len(rows), 4; ``conjugate_step`` with ``keep`` sets them). ``inv_kn``, ``inv_kt``
+    (len(rows),): 1/k_n, 1/k_t per row. Returns |r_k|², the squared change the sweep made to the impulses."""
+    size = 0.0
     for r in range(len(rows)):
-        project(rows[r], inv_kn[r], inv_kt[r], first, second, normal, r_first, r_second, u_wall, target, mu, inv_m,
-                inv_i, v, w, lam_n, lam_t)
-    return impulse_change(rows, lam_n, lam_t, before)
+        c = rows[r]
+        project(c, inv_kn[r], inv_kt[r], first, second, normal, r_first, r_second, u_wall, target, mu, inv_m, inv_i,
+                v, w, lam_n, lam_t)
+        size += ((lam_n[c] - before[r, 0]) ** 2 + (lam_t[c, 0] - before[r, 1]) ** 2
+                 + (lam_t[c, 1] - before[r, 2]) ** 2 + (lam_t[c, 2] - before[r, 3]) ** 2)
+    return size
 
 
 @njit(cache=True)

@@ -275,14 +275,15 @@ def block_sweeps(halo: Halo, rows, contacts, target, mu, bodies, lam_n, lam_t, b
     (border_rows, *border), (inner_rows, *inner) = parts
     done, pending, largest, previous, beta, stop = 0, None, np.zeros(1), 0.0, 2.0, False
     saved = np.hstack([v[watched], w[watched]])
+    impulses.conjugate_step(inner_rows, beta, inner[2], inner[3], *stepped, True)   # (β = 2: none; p = 0)
     while not stop:
         # the border's conjugate step (of the sweep before) and sweep after the lower colours', then the
         # inner sweep and its conjugate step (no other rank's body) while the higher colours sweep theirs
         halo.take_shared(lower, v, w)
-        impulses.conjugate_step(border_rows, beta, border[2], border[3], *stepped)
-        size = impulses.sweep_keeping(border_rows, *border[:3], *contacts)
+        impulses.conjugate_step(border_rows, beta, border[2], border[3], *stepped, True)
+        size = impulses.sweep_from(border_rows, *border[:3], *contacts)
         posted = halo.post_shared(neighbours, v, w)
-        size += impulses.sweep_keeping(inner_rows, *inner[:3], *contacts)
+        size += impulses.sweep_from(inner_rows, *inner[:3], *contacts)
         done += 1
         if pending is not None:   # the test of the sweep before this one, reduced meanwhile
             pending.Wait()
@@ -290,7 +291,7 @@ def block_sweeps(halo: Halo, rows, contacts, target, mu, bodies, lam_n, lam_t, b
         beta = size / previous if previous > 0 else 2.0   # this rank's β (one over the ranks: no better)
         previous = size
         if not stop:
-            impulses.conjugate_step(inner_rows, beta, inner[2], inner[3], *stepped)
+            impulses.conjugate_step(inner_rows, beta, inner[2], inner[3], *stepped, True)
         halo.take_shared(higher, v, w)
         MPI.Request.Waitall([request for request, _ in posted])
         largest = np.array([impulses.change_since(watched, v, w, arm, saved)])
