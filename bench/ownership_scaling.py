@@ -7,15 +7,20 @@ The bed of ``bench/contacts.py`` (N spheres, default 100,000, on a lattice 1 % a
 cut into P boxes by ``ownership.bisect`` (in one process: the bisection's reductions over ranks are
 sums of histograms, the same whole), and for each box the ghosts a contact step copies in
 (a dense step's rule: within r + r_max + two travels of the box) and the particles it shares (the rows of
-its merge per round of sweeps) are counted. Printed per P: the most owned and ghost particles of a
-rank, the bytes a rank sends per step (ghosts once, 170 B each; 48 B per shared particle per merge,
-M + 1 merges: M = K / LOCAL_SWEEPS rounds of K sweeps, and the warm start's),
-the neighbours it exchanges with, and a time per step
+its sweeps' messages) are counted, and the ranks coloured as the block Gauss–Seidel colours them
+(greedy, two ranks sharing a particle apart). Printed per P: the most owned and ghost particles of
+a rank, the bytes a rank sends per step (ghosts once, 170 B each; 48 B per shared particle per
+message: one after each of the K sweeps and one for the warm start), the neighbours it exchanges
+with, the colours, and a time per step
 
-    t(P) = compute × (owned + ghosts) + (M + 1) × (neighbours × latency + bytes per merge / bandwidth)
-           + 6 × log2(P) × latency
+    t(P) = max(compute × (owned + ghosts), K × C × border) + (K + 1) × (neighbours × latency
+           + bytes per message / bandwidth) + K × (C − 1) × latency + 6 × log2(P) × latency
 
-(compute: µs per particle and step of the engine on one rank, measured by ``bench/contacts.py``;
+A sweep passes the shared particles' copies from colour to colour: the C colours' border contacts
+(those touching a shared particle) are swept one colour after another, each while the others sweep
+their inner contacts, so a step takes at least K × C × border (border: a sweep of a rank's border
+contacts, taken as the sweeps' share of the compute, 40 %, / K per shared particle) and the chain's
+latencies (compute: µs per particle and step of the engine on one rank, measured by ``bench/contacts.py``;
 latency, bandwidth: of the network, given; the last term: the step's reductions).
 """
 from __future__ import annotations
@@ -30,8 +35,9 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "bench"))
 from contacts import bed_lattice  # noqa: E402
-from pmpm.collisions.settings import LOCAL_SWEEPS  # noqa: E402
 from pmpm.ownership import bisect  # noqa: E402
+
+SWEEP_SHARE = 0.4   # the sweeps' share of a dense step's compute (bench/hopper.py's profile, 1 rank: 10 of 25 s)
 
 
 class WholeComm:
@@ -64,10 +70,10 @@ def main():
     width = state.radius + r + 2 * 1.0 * dt
     print(f"{n} spheres (r = {r} m), bed {np.ptp(state.x, axis=0).round(3)} m; compute {compute} µs/particle/step, "
           f"latency {latency} µs, bandwidth {bandwidth} GB/s, {sweeps} sweeps")
-    print(f"{'ranks':>6s} {'owned':>8s} {'ghosts':>8s} {'shared':>8s} {'neighbours':>10s} {'kB/step':>9s} "
+    print(f"{'ranks':>6s} {'owned':>8s} {'ghosts':>8s} {'shared':>8s} {'neighbours':>10s} {'colours':>7s} "
+          f"{'kB/step':>9s} "
           f"{'B/owned':>8s} {'model ms/step':>14s} {'speed-up':>9s}")
     one = compute * n / 1000
-    merges = math.ceil(sweeps / LOCAL_SWEEPS)
     for p in ranks:
         partition = bisect(WholeComm(p), state.x)
         owner = partition.owner_of(state.x)
@@ -79,17 +85,30 @@ def main():
         held = reaches | (np.arange(p)[None] == owner[:, None])
         shared_rows = (held & (held.sum(axis=1) > 1)[:, None]).sum(axis=0)
         # neighbours: ranks that hold a particle together
-        shared = held[held.sum(axis=1) > 1]
-        neighbours = max(int(((shared.T.astype(int) @ shared.astype(int)) > 0).sum(axis=1).max() - 1), 0) \
-            if len(shared) else 0
+        shared = held[held.sum(axis=1) > 1].astype(int)
+        together = (shared.T @ shared) > 0
+        np.fill_diagonal(together, False)
+        neighbours = int(together.sum(axis=1).max())
+        colours = colouring(together)
         worst = int(np.argmax(owned + ghosts))
         ghost_bytes = 170 * ghosts[worst]   # a ghost's row: the particle's 98 B, its 16 holders, its row
-        merge_bytes = 48 * shared_rows[worst]
-        sent = ghost_bytes + (merges + 1) * merge_bytes
-        t = (compute * (owned[worst] + ghosts[worst]) + (merges + 1) * (neighbours * latency + merge_bytes / (bandwidth * 1e3))
-             + 6 * math.log2(p) * latency) / 1000
-        print(f"{p:6d} {owned.max():8d} {ghosts.max():8d} {shared_rows.max():8d} {neighbours:10d} {sent / 1e3:9.1f} "
-              f"{sent / owned[worst]:8.0f} {t:14.2f} {one / t:9.1f}", flush=True)
+        message_bytes = 48 * shared_rows[worst]
+        sent = ghost_bytes + (sweeps + 1) * message_bytes
+        border = SWEEP_SHARE * compute / sweeps * shared_rows.max()
+        t = (max(compute * (owned[worst] + ghosts[worst]), sweeps * colours * border)
+             + (sweeps + 1) * (neighbours * latency + message_bytes / (bandwidth * 1e3))
+             + sweeps * (colours - 1) * latency + 6 * math.log2(p) * latency) / 1000
+        print(f"{p:6d} {owned.max():8d} {ghosts.max():8d} {shared_rows.max():8d} {neighbours:10d} {colours:7d} "
+              f"{sent / 1e3:9.1f} {sent / owned[worst]:8.0f} {t:14.2f} {one / t:9.1f}", flush=True)
+
+
+def colouring(together: np.ndarray) -> int:
+    """The colours of ``pmpm.ownership.Halo.colours`` (greedy in rank order) of the ranks' graph."""
+    colour = np.zeros(len(together), int)
+    for rank in range(len(together)):
+        taken = set(colour[np.flatnonzero(together[rank, :rank])])
+        colour[rank] = min(set(range(len(taken) + 1)) - taken)
+    return int(colour.max()) + 1
 
 
 if __name__ == "__main__":

@@ -9,17 +9,17 @@ can act, counted once each, by the owner of their lower-id particle). Then:
 - a **dense step with many contacts** (a bed, a hopper: at least ``gather_contacts`` that can
   act, over all ranks) is a block Gauss–Seidel that conforms to the subdomains
   (Preclik & Rüde 2015): a contact is solved by the rank that owns its lower-id particle (walls:
-  the particle's owner), each rank sweeps its contacts in the record's order, and after each
-  round of ``LOCAL_SWEEPS`` sweeps every rank holding a particle sends the others the change its
-  sweeps made to the particle's velocities, and all set the same merged value (``Halo.merge``: one
-  message each way per pair of ranks sharing particles, per round; Jacobi between subdomains,
-  Gauss–Seidel inside; two sweeps a round, as Tonge et al. 2012 sweep locally between exchanges,
-  halve the exchanges).
-  A particle in the contacts of k ranks has 1/k of its mass on each and the changes are averaged
-  (mass splitting, Tonge et al. 2012), so the merged velocity is v0 + Σ J / m over every rank's
-  impulses. The stopping test, the energy check and the deposition flags meet in reductions, so
-  every rank makes the same number of sweeps. Overlaps are removed per rank over its contacts
-  (positions, each rank keeping its owned particles').
+  the particle's owner), each rank sweeps its contacts in the record's order, and the ranks'
+  sweeps follow one another in one order: the ranks are coloured (two holding a particle together
+  apart), and in each sweep a rank sweeps its *border* contacts (touching a particle another rank
+  holds) after taking the lower colours' copies of the shared particles, passes its copies on, and
+  sweeps its *inner* contacts while the higher colours sweep their border (``block_sweeps``; one
+  message each way per pair of ranks sharing particles, per sweep). So a sweep over all ranks is
+  a Gauss–Seidel sweep of one rank over the contacts ordered by colour, the copies stay equal to
+  the bit, and each rank takes the nonsmooth conjugate-gradient step of its contacts after each
+  sweep, as one rank does (its own step length). The stopping test, the energy check and the
+  deposition flags meet in reductions, so every rank makes the same number of sweeps. Overlaps
+  are removed per rank over its contacts (positions, each rank keeping its owned particles').
 - any other step (an event step, or a dense one with fewer contacts) gathers the particles of
   every contact, from their owners, on every rank, which all take the same step
   (``advance_with_collisions``, with the global search speed and particle count) and keep their
@@ -180,7 +180,7 @@ def gathered_step(comm, state, local, halo, record, walls, dt, settings, memory,
 # ----------------------------------------------------------------------------------------------
 def dense_blocks(halo: Halo, bodies, record, rows, warm_n, warm_t, settings, dt, walls, kernels, counters, extra):
     """``dense.dense_step`` over this rank's contacts ``rows`` (those whose ``first`` it owns), the
-    ranks' shadow copies merged after every change (see the module's docstring). Returns the
+    ranks' sweeps in one order (see the module's docstring). Returns the
     contacts' impulses (m,) and (m, 3) (N s, on ``first``; 0 on other ranks' contacts)."""
     comm, impulses = halo.comm, kernels.impulses
     n, m = len(bodies.radius) - 1, len(record)
@@ -245,8 +245,11 @@ def block_sweeps(halo: Halo, rows, contacts, target, mu, bodies, lam_n, lam_t, b
     higher colours sweep their border, whose copies it takes at the end. Inner contacts of different
     ranks share no body, so the sweep is that of one rank over the contacts ordered by colour
     (border before inner within a rank), every contact seeing the velocities its bodies have just
-    then, and the copies stay equal to the bit. A sweep's test is reduced over the ranks while the
-    next sweep runs (a nonblocking reduction): the sweeps stop one sweep after the one that converged.
+    then, and the copies stay equal to the bit. Each rank's conjugate-gradient step (``impulses.sweep``'s
+    notes, with this rank's step length: one reduced over the ranks converged no better) follows its
+    inner sweep at once, and its border sweep's after the lower colours' copies arrive (before, it
+    would be overwritten). A sweep's test is reduced over the ranks while the next sweep runs (a
+    nonblocking reduction): the sweeps stop one sweep after the one that converged.
     """
     first, second, normal, r_first, r_second, u_wall = contacts
     inv_m, inv_i, v, w = bodies
@@ -263,16 +266,16 @@ def block_sweeps(halo: Halo, rows, contacts, target, mu, bodies, lam_n, lam_t, b
     shared = np.zeros(len(inv_m), bool)
     shared[halo.shared_rows] = True
     border = shared[a] | shared[b]
-    # per part, border then inner: rows, 1/k_n, 1/k_t, impulses before a sweep, conjugate direction
-    parts = [(rows[where], inv_kn[where], inv_kt[where], np.empty((where.sum(), 4)), np.zeros((where.sum(), 4)))
-             for where in (border, ~border)]
+    # border and inner contacts: rows, 1/k_n, 1/k_t, their impulses before a sweep, the conjugate direction
+    (border_rows, *border), (inner_rows, *inner) = [
+        (rows[where], inv_kn[where], inv_kt[where], np.empty((where.sum(), 4)), np.zeros((where.sum(), 4)))
+        for where in (border, ~border)]
     colour = halo.colours()
     neighbours = sorted(halo.shared_at, key=lambda r: colour[r])
     lower = [r for r in neighbours if colour[r] < colour[halo.comm.rank]]
     higher = [r for r in neighbours if colour[r] > colour[halo.comm.rank]]
     contacts = (first, second, normal, r_first, r_second, u_wall, target, mu, inv_m, inv_i, v, w, lam_n, lam_t)
     stepped = (first, second, normal, r_first, r_second, inv_m, inv_i, v, w, lam_n, lam_t)
-    (border_rows, *border), (inner_rows, *inner) = parts
     done, pending, largest, previous, beta, stop = 0, None, np.zeros(1), 0.0, 2.0, False
     saved = np.hstack([v[watched], w[watched]])
     impulses.conjugate_step(inner_rows, beta, inner[2], inner[3], *stepped, True)   # (β = 2: none; p = 0)
@@ -288,7 +291,7 @@ def block_sweeps(halo: Halo, rows, contacts, target, mu, bodies, lam_n, lam_t, b
         if pending is not None:   # the test of the sweep before this one, reduced meanwhile
             pending.Wait()
         stop = done == budget or (pending is not None and largest[0] <= tol)
-        beta = size / previous if previous > 0 else 2.0   # this rank's β (one over the ranks: no better)
+        beta = size / previous if previous > 0 else 2.0
         previous = size
         if not stop:
             impulses.conjugate_step(inner_rows, beta, inner[2], inner[3], *stepped, True)
