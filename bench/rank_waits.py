@@ -3,7 +3,8 @@
     mpirun -n 2 .venv/bin/python bench/rank_waits.py CASE [pmpm options, e.g. --output DIR --restart FILE]
 
 Runs ``python -m pmpm`` with its communicator replaced by one that times each blocking call it
-makes (the collectives and the waits on nonblocking messages; the mesh keeps the plain world
+makes (the collectives, the blocking receives of the block sweeps and the waits on nonblocking
+messages, but for the sweeps' nonblocking test, ``Request.Wait``; the mesh keeps the plain world
 communicator, which PETSc needs), then prints per rank the whole run's wall time, the seconds
 spent in each kind of call and the rest, its busy time. A rank that waits much longer than another
 is waiting for it: the difference of their busy times is the imbalance, measured without a
@@ -22,7 +23,7 @@ from mpi4py import MPI
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 BLOCKING = ("allgather", "allreduce", "alltoall", "gather", "bcast", "Allreduce", "Allgather", "Alltoall",
-            "Alltoallv", "Barrier")
+            "Alltoallv", "Barrier", "Recv")
 clock: dict[str, list] = {}
 
 

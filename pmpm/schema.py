@@ -129,8 +129,8 @@ SCHEMA: dict[str, tuple[Key, ...]] = {
         Key("friction", "float", 0.3, ">=0", help="Coulomb friction coefficient"),
         Key("rolling_friction", "float", 0.0, ">=0", help="rolling (and spin) resistance coefficient at walls"),
         Key("dense_sweeps", "int", 20, ">0",
-            help="the most projected Gauss-Seidel sweeps of a dense step (a bed, a hopper); on several ranks the "
-                 "block sweeps converge slower near the cuts (docs/collisions.md, \"Accuracy on several ranks\")"),
+            help="the most projected Gauss-Seidel sweeps of a dense step (a bed, a hopper), on any number of ranks "
+                 "(docs/collisions.md, \"Accuracy on several ranks\")"),
         Key("gather_contacts", "int", 4096, ">=0",
             help="without a fluid, on several ranks: steps with fewer contacts over all ranks are solved as on "
                  "one rank (the contacts' particles gathered), larger ones by block Gauss-Seidel over the ranks"),
