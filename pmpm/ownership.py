@@ -354,7 +354,7 @@ class Halo:
 
     def post_shared(self, ranks, *arrays: np.ndarray) -> list:
         """Send each of ``ranks`` the rows of ``arrays`` (2-D) of the particles it holds too, side by
-        side, without waiting; returns the requests (wait on them before changing those rows' sources)."""
+        side, without waiting; returns (request, buffer) pairs: wait on the requests before the buffers go."""
         requests = []
         for r in ranks:
             block = _rows_of(self.shared_rows[self.shared_at[r]], arrays)
