@@ -385,7 +385,7 @@ class Halo:
         arrays, reference = tuple(arrays), tuple(reference)
         if not all(a.ndim == 2 and a.flags.c_contiguous for a in arrays + reference):
             raise ValueError("Halo.merge takes C-contiguous 2-D arrays")
-        change = _changes(rows, arrays, reference)
+        change = _rows_of(rows, arrays) - _rows_of(rows, reference)
         # the other holders' changes in one buffer, in rank order (the lower ranks' rows first)
         neighbours = sorted(self.shared_at)
         at = [self.shared_at[r] for r in neighbours]
@@ -429,23 +429,6 @@ def _set_rows(rows, block, arrays):
             for j in range(arrays[k].shape[1]):
                 arrays[k][rows[i], j] = block[i, column + j]
         column += arrays[k].shape[1]
-
-
-@njit(cache=True)
-def _changes(rows, arrays, reference):
-    """(len(rows), Σ widths): each array's change since its reference on ``rows``, side by side."""
-    width = 0
-    for k in range(len(arrays)):
-        width += arrays[k].shape[1]
-    out = np.empty((len(rows), width))
-    column = 0
-    for k in range(len(arrays)):
-        now, before = arrays[k], reference[k]
-        for i in range(len(rows)):
-            for j in range(now.shape[1]):
-                out[i, column + j] = now[rows[i], j] - before[rows[i], j]
-        column += now.shape[1]
-    return out
 
 
 @njit(cache=True)

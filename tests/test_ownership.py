@@ -151,11 +151,11 @@ def test_a_block_solve_across_the_cut_converges_as_one_rank(comm):
                                  gather_contacts=0, dense_sweeps=10)
     memory = advance_with_collisions(state, floor(), dt, replace(settings, dense_sweeps=2000)).memory
     state.v[:] += stir[1]
-    errors = {}
+    velocities = {}
     for label, sweeps in (("reference", 2000), ("one", 10)):
         whole = state.copy()
         advance_with_collisions(whole, floor(), dt, replace(settings, dense_sweeps=sweeps), memory)
-        errors[label] = whole.v
+        velocities[label] = whole.v
     partition = halves(comm)
     owned = state.without(partition.owner_of(state.x) != comm.rank)
     mine = np.isin(memory.first_id, owned.id)
@@ -164,12 +164,12 @@ def test_a_block_solve_across_the_cut_converges_as_one_rank(comm):
     advance_owned(comm, partition, owned, floor(), dt, settings, memory)
     result = gather(comm, owned)
     np.testing.assert_array_equal(result.id, state.id)
-    reference = errors.pop("reference")
-    errors["two"] = result.v
+    reference = velocities.pop("reference")
+    velocities["two"] = result.v
 
     def rms(a):
         return np.sqrt((a ** 2).sum(axis=1).mean())
-    one, two = rms(errors["one"] - reference), rms(errors["two"] - reference)
+    one, two = rms(velocities["one"] - reference), rms(velocities["two"] - reference)
     assert one > 1e-3 * rms(reference), "10 sweeps are not converged (the comparison means something)"
     assert two <= 1.1 * one, (one, two)
 
