@@ -248,8 +248,11 @@ def block_sweeps(halo: Halo, rows, contacts, target, mu, bodies, lam_n, lam_t, b
     then, and the copies stay equal to the bit. Each rank's conjugate-gradient step (``impulses.sweep``'s
     notes, with this rank's step length: one reduced over the ranks converged no better) follows its
     inner sweep at once, and its border sweep's after the lower colours' copies arrive (before, it
-    would be overwritten). A sweep's test is reduced over the ranks while the next sweep runs (a
-    nonblocking reduction): the sweeps stop one sweep after the one that converged.
+    would be overwritten). A sweep's test is reduced over the ranks while the next two sweeps run (a
+    nonblocking reduction, waited on once this rank has the higher colours' copies of the sweep
+    after it, so every rank has started it: waiting one sweep sooner held the lowest colour until
+    the highest finished its inner sweep, every sweep): the sweeps stop two sweeps after the one
+    that converged.
     """
     first, second, normal, r_first, r_second, u_wall = contacts
     inv_m, inv_i, v, w = bodies
@@ -276,7 +279,8 @@ def block_sweeps(halo: Halo, rows, contacts, target, mu, bodies, lam_n, lam_t, b
     higher = [r for r in neighbours if colour[r] > colour[halo.comm.rank]]
     contacts = (first, second, normal, r_first, r_second, u_wall, target, mu, inv_m, inv_i, v, w, lam_n, lam_t)
     stepped = (first, second, normal, r_first, r_second, inv_m, inv_i, v, w, lam_n, lam_t)
-    done, pending, largest, previous, beta, stop = 0, None, np.zeros(1), 0.0, 2.0, False
+    done, previous, beta, stop = 0, 0.0, 2.0, False
+    tests = []   # (request, its largest change) of the sweeps whose test is being reduced, oldest first
     saved = np.hstack([v[watched], w[watched]])
     impulses.conjugate_step(inner_rows, beta, inner[2], inner[3], *stepped, True)   # (β = 2: none; p = 0)
     while not stop:
@@ -288,9 +292,11 @@ def block_sweeps(halo: Halo, rows, contacts, target, mu, bodies, lam_n, lam_t, b
         posted = halo.post_shared(neighbours, v, w)
         size += impulses.sweep_from(inner_rows, *inner[:3], *contacts)
         done += 1
-        if pending is not None:   # the test of the sweep before this one, reduced meanwhile
-            pending.Wait()
-        stop = done == budget or (pending is not None and largest[0] <= tol)
+        if len(tests) == 2:   # the test of the sweep before the last, reduced meanwhile
+            request, largest = tests.pop(0)
+            request.Wait()
+            stop = largest[0] <= tol
+        stop = stop or done == budget
         beta = size / previous if previous > 0 else 2.0
         previous = size
         if not stop:
@@ -298,7 +304,8 @@ def block_sweeps(halo: Halo, rows, contacts, target, mu, bodies, lam_n, lam_t, b
         halo.take_shared(higher, v, w)
         MPI.Request.Waitall([request for request, _ in posted])
         largest = np.array([impulses.change_since(watched, v, w, arm, saved)])
-        pending = None if stop else halo.comm.Iallreduce(MPI.IN_PLACE, largest, op=MPI.MAX)
+        tests.append((halo.comm.Iallreduce(MPI.IN_PLACE, largest, op=MPI.MAX), largest))
+    MPI.Request.Waitall([request for request, _ in tests])
     return done
 
 
