@@ -352,22 +352,34 @@ class Halo:
             colour[rank] = min(set(range(len(taken) + 1)) - taken)
         return colour
 
-    def post_shared(self, ranks, *arrays: np.ndarray) -> list:
-        """Send each of ``ranks`` the rows of ``arrays`` (2-D) of the particles it holds too, side by
+    def passes(self, ranks, changing: np.ndarray) -> dict:
+        """Collective among ``ranks`` (those this rank shares particles with). Per rank r of them,
+        (the local rows this rank passes on to r, those r passes on here): of the particles both
+        hold, those ``changing`` (bool per local row) here, and there (one message each way)."""
+        masks = {r: changing[self.shared_rows[self.shared_at[r]]].astype(np.uint8) for r in ranks}
+        theirs = {r: np.empty_like(mask) for r, mask in masks.items()}
+        requests = [self.comm.Irecv(theirs[r], source=r, tag=80) for r in ranks]
+        requests += [self.comm.Isend(masks[r], dest=r, tag=80) for r in ranks]
+        MPI.Request.Waitall(requests)
+        rows = {r: self.shared_rows[self.shared_at[r]] for r in ranks}
+        return {r: (rows[r][masks[r] > 0], rows[r][theirs[r] > 0]) for r in ranks}
+
+    def post_shared(self, passes: dict, ranks, *arrays: np.ndarray) -> list:
+        """Send each of ``ranks`` the rows of ``arrays`` (2-D) it is passed (``passes``), side by
         side, without waiting; returns (request, buffer) pairs: wait on the requests before the buffers go."""
         requests = []
         for r in ranks:
-            block = _rows_of(self.shared_rows[self.shared_at[r]], arrays)
+            block = _rows_of(passes[r][0], arrays)
             self.sent += block.nbytes
             requests.append((self.comm.Isend(block, dest=r, tag=79), block))
         return requests
 
-    def take_shared(self, ranks, *arrays: np.ndarray) -> None:
+    def take_shared(self, passes: dict, ranks, *arrays: np.ndarray) -> None:
         """Receive from each of ``ranks``, in that order, what its ``post_shared`` sent, and set the
-        rows of the particles held together to it (the later rank's value where two send one)."""
+        rows it passes here (``passes``) to it (the later rank's value where two send one)."""
         width = sum(array.shape[1] for array in arrays)
         for r in ranks:
-            rows = self.shared_rows[self.shared_at[r]]
+            rows = passes[r][1]
             block = np.empty((len(rows), width))
             self.comm.Recv(block, source=r, tag=79)
             _set_rows(rows, block, arrays)

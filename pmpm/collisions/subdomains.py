@@ -275,6 +275,10 @@ def block_sweeps(halo: Halo, rows, contacts, target, mu, bodies, lam_n, lam_t, b
         for where in (border, ~border)]
     colour = halo.colours()
     neighbours = sorted(halo.shared_at, key=lambda r: colour[r])
+    # a rank changes the shared particles of its border contacts only: those it passes on each sweep
+    changing = np.zeros(len(inv_m), bool)
+    changing[first[border_rows]] = changing[second[border_rows]] = True
+    passes = halo.passes(neighbours, changing)
     lower = [r for r in neighbours if colour[r] < colour[halo.comm.rank]]
     higher = [r for r in neighbours if colour[r] > colour[halo.comm.rank]]
     contacts = (first, second, normal, r_first, r_second, u_wall, target, mu, inv_m, inv_i, v, w, lam_n, lam_t)
@@ -286,10 +290,10 @@ def block_sweeps(halo: Halo, rows, contacts, target, mu, bodies, lam_n, lam_t, b
     while not stop:
         # the border's conjugate step (of the sweep before) and sweep after the lower colours', then the
         # inner sweep and its conjugate step (no other rank's body) while the higher colours sweep theirs
-        halo.take_shared(lower, v, w)
+        halo.take_shared(passes, lower, v, w)
         impulses.conjugate_step(border_rows, beta, border[2], border[3], *stepped, True)
         size = impulses.sweep_from(border_rows, *border[:3], *contacts)
-        posted = halo.post_shared(neighbours, v, w)
+        posted = halo.post_shared(passes, neighbours, v, w)
         size += impulses.sweep_from(inner_rows, *inner[:3], *contacts)
         done += 1
         if len(tests) == 2:   # the test of the sweep before the last, reduced meanwhile
@@ -301,7 +305,7 @@ def block_sweeps(halo: Halo, rows, contacts, target, mu, bodies, lam_n, lam_t, b
         previous = size
         if not stop:
             impulses.conjugate_step(inner_rows, beta, inner[2], inner[3], *stepped, True)
-        halo.take_shared(higher, v, w)
+        halo.take_shared(passes, higher, v, w)
         MPI.Request.Waitall([request for request, _ in posted])
         largest = np.array([impulses.change_since(watched, v, w, arm, saved)])
         tests.append((halo.comm.Iallreduce(MPI.IN_PLACE, largest, op=MPI.MAX), largest))
