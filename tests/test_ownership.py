@@ -97,6 +97,26 @@ def test_owner_of_is_the_box_holding_each_point():
     assert np.bincount(owner[:4000], minlength=8).min() >= 4000 // 8 - 40
 
 
+def test_spliced_rows_are_the_sorted_rows_less_those_dropped_plus_those_added():
+    """Migration's splice against a plain sort: drops and insertions at the same place, next to
+    each other, at both ends, and none."""
+    from pmpm.migration import spliced
+    rng = np.random.default_rng(3)
+    keys = np.sort(rng.choice(100, 30, replace=False)) * 2        # even keys held, odd ones added
+    rows = {"key": keys, "x": rng.random((30, 3))}
+    cases = [([], []), ([0, 1, 2], [-1, 1]), ([29], [199, 59]), ([5, 6, 10], [keys[5] + 1, keys[10] - 1, 3]),
+             (list(range(30)), [7])]
+    for drop, added_keys in cases:
+        added_keys = np.array(added_keys, np.int64)
+        added = {"key": added_keys, "x": rng.random((len(added_keys), 3))}
+        result = spliced(rows, keys, np.array(drop, np.int64), added, added_keys)
+        keep = np.setdiff1d(np.arange(30), drop)
+        every = {name: np.concatenate([rows[name][keep], added[name]]) for name in rows}
+        order = np.argsort(every["key"])
+        for name in rows:
+            np.testing.assert_array_equal(result[name], every[name][order])
+
+
 @pytest.mark.mpi
 def test_pair_across_the_cut_gives_the_one_rank_result(comm):
     """Two spheres meeting head-on and obliquely across x = 0, one on each rank: positions, velocities
