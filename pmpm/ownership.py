@@ -245,7 +245,8 @@ class Halo:
     no ghost. ``merge`` takes one message each way between ranks that hold a particle together:
     each holder sends its change to the others, and all add the changes in rank order.
     ``post_shared`` / ``take_shared`` pass the shared rows' values on from one rank to the next, in
-    the order of ``colours`` (the block Gauss–Seidel's sweeps).
+    the order of ``colours`` (the block Gauss–Seidel's sweeps): those of the rows each rank changes
+    (``passes``, agreed once per step).
     """
 
     comm: object

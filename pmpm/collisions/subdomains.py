@@ -122,7 +122,8 @@ def reduced(comm, max_of: tuple, sum_of: tuple) -> list:
     values = np.array(max_of + sum_of, float)
     every = np.empty((comm.size, len(values)))
     comm.Allgather(values, every)
-    return [float(v) for v in every[:, :len(max_of)].max(axis=0)] + [float(v) for v in every[:, len(max_of):].sum(axis=0)]
+    maxima, sums = every[:, :len(max_of)].max(axis=0), every[:, len(max_of):].sum(axis=0)
+    return [float(v) for v in maxima] + [float(v) for v in sums]
 
 
 def summed_stats(comm, counters: np.ndarray, extra: dict) -> dict:
