@@ -35,7 +35,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "bench"))
 from contacts import bed_lattice  # noqa: E402
-from pmpm.ownership import bisect  # noqa: E402
+from pmpm.ownership import bisect, greedy_colours  # noqa: E402
 
 SWEEP_SHARE = 0.4   # the sweeps' share of a dense step's compute (bench/hopper.py's profile, 1 rank: 10 of 25 s)
 
@@ -103,12 +103,8 @@ def main():
 
 
 def colouring(together: np.ndarray) -> int:
-    """The colours of ``pmpm.ownership.Halo.colours`` (greedy in rank order) of the ranks' graph."""
-    colour = np.zeros(len(together), int)
-    for rank in range(len(together)):
-        taken = set(colour[np.flatnonzero(together[rank, :rank])])
-        colour[rank] = min(set(range(len(taken) + 1)) - taken)
-    return int(colour.max()) + 1
+    """How many colours ``pmpm.ownership.Halo.colours`` gives the ranks' graph (``together``: (P, P) bool)."""
+    return int(greedy_colours([np.flatnonzero(row).tolist() for row in together]).max()) + 1
 
 
 if __name__ == "__main__":

@@ -105,9 +105,9 @@ def migrate_particles(comm, exits, state: RunState, start: np.ndarray, dt: float
     groups = [(owner[gone], {name: values[gone] for name, values in rows.items()})]
     contacts = state.contacts
     if contacts is not None:   # the memory goes where the contact's lower-id particle goes
-        at = np.minimum(np.searchsorted(particles.id[gone], contacts.first_id), max(len(gone) - 1, 0))
-        follows = particles.id[gone][at] == contacts.first_id if len(gone) else np.zeros(len(contacts), bool)
-        follows = np.flatnonzero(follows)
+        going = particles.id[gone]
+        at = np.minimum(np.searchsorted(going, contacts.first_id), max(len(gone) - 1, 0))
+        follows = np.flatnonzero(going[at] == contacts.first_id if len(gone) else np.zeros(len(contacts), bool))
         memory = contacts.to_arrays()
         groups.append((owner[gone][at[follows]], {name: values[follows] for name, values in memory.items()}))
     arrived, *arrived_contacts = exchange_groups(comm, groups)   # (rows bound for −1 go nowhere)

@@ -198,6 +198,17 @@ def exchange_groups(comm, groups: list) -> list[dict]:
     return result
 
 
+def greedy_colours(neighbours: list) -> np.ndarray:
+    """(ranks,) a colour per rank, greedy in rank order, apart from every rank it lists as a
+    neighbour or that lists it (``neighbours``: per rank, the ranks it holds a particle with)."""
+    colour = np.zeros(len(neighbours), np.int64)
+    for rank in range(len(neighbours)):
+        taken = {int(colour[other]) for other in neighbours[rank] if other < rank}
+        taken |= {int(colour[other]) for other in range(rank) if rank in neighbours[other]}
+        colour[rank] = min(set(range(len(taken) + 1)) - taken)
+    return colour
+
+
 def particle_rows(particles: ParticleState, rows: np.ndarray | slice = slice(None)) -> dict:
     return {name: getattr(particles, name)[rows] for name in PARTICLE_FIELDS}
 
@@ -344,25 +355,19 @@ class Halo:
 
     def colours(self) -> np.ndarray:
         """Collective. (comm.size,) a colour per rank, ranks holding a particle together coloured
-        apart (greedy in rank order; two ranks: 0 and 1), the same on every rank."""
-        neighbours = self.comm.allgather(sorted(self.shared_at))
-        colour = np.zeros(self.comm.size, np.int64)
-        for rank in range(self.comm.size):
-            taken = {int(colour[other]) for other in neighbours[rank] if other < rank}
-            taken |= {int(colour[other]) for other in range(rank) if rank in neighbours[other]}
-            colour[rank] = min(set(range(len(taken) + 1)) - taken)
-        return colour
+        apart (``greedy_colours``; two ranks: 0 and 1), the same on every rank."""
+        return greedy_colours(self.comm.allgather(sorted(self.shared_at)))
 
     def passes(self, ranks, changing: np.ndarray) -> dict:
         """Collective among ``ranks`` (those this rank shares particles with). Per rank r of them,
         (the local rows this rank passes on to r, those r passes on here): of the particles both
         hold, those ``changing`` (bool per local row) here, and there (one message each way)."""
-        masks = {r: changing[self.shared_rows[self.shared_at[r]]].astype(np.uint8) for r in ranks}
+        rows = {r: self.shared_rows[self.shared_at[r]] for r in ranks}
+        masks = {r: changing[rows[r]].astype(np.uint8) for r in ranks}
         theirs = {r: np.empty_like(mask) for r, mask in masks.items()}
         requests = [self.comm.Irecv(theirs[r], source=r, tag=80) for r in ranks]
         requests += [self.comm.Isend(masks[r], dest=r, tag=80) for r in ranks]
         MPI.Request.Waitall(requests)
-        rows = {r: self.shared_rows[self.shared_at[r]] for r in ranks}
         return {r: (rows[r][masks[r] > 0], rows[r][theirs[r] > 0]) for r in ranks}
 
     def post_shared(self, passes: dict, ranks, *arrays: np.ndarray) -> list:

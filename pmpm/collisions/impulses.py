@@ -171,14 +171,19 @@ def keep_impulses(rows, lam_n, lam_t, before):
         before[r, 0], before[r, 1], before[r, 2], before[r, 3] = lam_n[c], lam_t[c, 0], lam_t[c, 1], lam_t[c, 2]
 
 
+@njit(cache=True, inline="always")
+def squared_change(c, r, lam_n, lam_t, before):
+    """The squared change of contact c's impulses since ``before[r]`` (N² s²)."""
+    return ((lam_n[c] - before[r, 0]) ** 2 + (lam_t[c, 0] - before[r, 1]) ** 2
+            + (lam_t[c, 1] - before[r, 2]) ** 2 + (lam_t[c, 2] - before[r, 3]) ** 2)
+
+
 @njit(cache=True)
 def impulse_change(rows, lam_n, lam_t, before):
     """|r_k|²: the squared change of the impulses of contacts ``rows`` since ``before`` (N² s²)."""
     size = 0.0
     for r in range(len(rows)):
-        c = rows[r]
-        size += ((lam_n[c] - before[r, 0]) ** 2 + (lam_t[c, 0] - before[r, 1]) ** 2
-                 + (lam_t[c, 1] - before[r, 2]) ** 2 + (lam_t[c, 2] - before[r, 3]) ** 2)
+        size += squared_change(rows[r], r, lam_n, lam_t, before)
     return size
 
 
@@ -221,8 +226,7 @@ def sweep_from(rows, inv_kn, inv_kt, before, first, second, normal, r_first, r_s
         c = rows[r]
         project(c, inv_kn[r], inv_kt[r], first, second, normal, r_first, r_second, u_wall, target, mu, inv_m, inv_i,
                 v, w, lam_n, lam_t)
-        size += ((lam_n[c] - before[r, 0]) ** 2 + (lam_t[c, 0] - before[r, 1]) ** 2
-                 + (lam_t[c, 1] - before[r, 2]) ** 2 + (lam_t[c, 2] - before[r, 3]) ** 2)
+        size += squared_change(c, r, lam_n, lam_t, before)
     return size
 
 

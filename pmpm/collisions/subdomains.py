@@ -269,11 +269,11 @@ def block_sweeps(halo: Halo, rows, contacts, target, mu, bodies, lam_n, lam_t, b
     watched = np.flatnonzero(np.append(halo.owned, False) & (inv_m > 0) & (arm > 0))
     shared = np.zeros(len(inv_m), bool)
     shared[halo.shared_rows] = True
-    border = shared[a] | shared[b]
+    touches_shared = shared[a] | shared[b]
     # border and inner contacts: rows, 1/k_n, 1/k_t, their impulses before a sweep, the conjugate direction
     (border_rows, *border), (inner_rows, *inner) = [
         (rows[where], inv_kn[where], inv_kt[where], np.empty((where.sum(), 4)), np.zeros((where.sum(), 4)))
-        for where in (border, ~border)]
+        for where in (touches_shared, ~touches_shared)]
     colour = halo.colours()
     neighbours = sorted(halo.shared_at, key=lambda r: colour[r])
     # a rank changes the shared particles of its border contacts only: those it passes on each sweep
