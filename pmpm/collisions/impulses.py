@@ -86,6 +86,16 @@ def project(c, inv_kn, inv_kt, first, second, normal, r_first, r_second, u_wall,
     apply_impulse(a, b, J, n, r_first[c], r_second[c], inv_m, inv_i, v, w)
 
 
+@njit(cache=True, inline="always")
+def inverse_masses(c, first, second, r_first, r_second, inv_m, inv_i):
+    """(1/k_n, 1/k_t) of contact c; 0 for two bodies of infinite mass (a particle deposited this
+    step on a wall: nothing moves)."""
+    a, b = first[c], second[c]
+    k_n = inv_m[a] + inv_m[b]
+    k_t = k_n + inv_i[a] * r_first[c] ** 2 + inv_i[b] * r_second[c] ** 2
+    return (1.0 / k_n if k_n > 0 else 0.0), (1.0 / k_t if k_t > 0 else 0.0)
+
+
 @njit(cache=True)
 def sweep(rows, first, second, normal, r_first, r_second, u_wall, target, mu, inv_m, inv_i, v, w,
           lam_n, lam_t, sweeps, tol):
@@ -110,13 +120,7 @@ def sweep(rows, first, second, normal, r_first, r_second, u_wall, target, mu, in
     inv_kn = np.empty(count)
     inv_kt = np.empty(count)
     for r in range(count):
-        c = rows[r]
-        a, b = first[c], second[c]
-        k_n = inv_m[a] + inv_m[b]
-        k_t = k_n + inv_i[a] * r_first[c] ** 2 + inv_i[b] * r_second[c] ** 2
-        # two bodies of infinite mass (a particle deposited this step on a wall): nothing moves
-        inv_kn[r] = 1.0 / k_n if k_n > 0 else 0.0
-        inv_kt[r] = 1.0 / k_t if k_t > 0 else 0.0
+        inv_kn[r], inv_kt[r] = inverse_masses(rows[r], first, second, r_first, r_second, inv_m, inv_i)
     # the bodies that can move, and their velocities before each sweep
     seen = np.zeros(len(inv_m), np.bool_)
     members = np.empty(2 * count, np.int64)
@@ -228,6 +232,48 @@ def sweep_from(rows, inv_kn, inv_kt, before, first, second, normal, r_first, r_s
                 v, w, lam_n, lam_t)
         size += squared_change(c, r, lam_n, lam_t, before)
     return size
+
+
+@njit(cache=True)
+def split_at_shared(rows, shared, first, second, r_first, r_second, inv_m, inv_i):
+    """``subdomains.block_sweeps``' contacts: ``rows`` split into those touching a body where
+    ``shared`` (border) and the others (inner), each in order with its 1/k_n and 1/k_t; returns
+    (border rows, 1/k_n, 1/k_t, inner rows, 1/k_n, 1/k_t, changing: (bodies,) bool, the bodies
+    the border contacts touch)."""
+    count = len(rows)
+    border, inner = np.empty(count, np.int64), np.empty(count, np.int64)
+    inv_kn, inv_kt = np.empty(count), np.empty(count)
+    changing = np.zeros(len(inv_m), np.bool_)
+    n_border = 0
+    for r in range(count):
+        c = rows[r]
+        if shared[first[c]] or shared[second[c]]:
+            border[n_border] = r
+            n_border += 1
+            changing[first[c]] = changing[second[c]] = True
+        else:
+            inner[r - n_border] = r
+        inv_kn[r], inv_kt[r] = inverse_masses(c, first, second, r_first, r_second, inv_m, inv_i)
+    border, inner = border[:n_border], inner[:count - n_border]
+    return rows[border], inv_kn[border], inv_kt[border], rows[inner], inv_kn[inner], inv_kt[inner], changing
+
+
+@njit(cache=True)
+def watched_bodies(rows, first, second, r_first, r_second, inv_m, owned):
+    """The bodies of contacts ``rows`` whose contact-point velocities a block sweep's stopping test
+    watches (where ``owned``, of finite mass), ascending, and every body's arm: its radius where it
+    touches, 0 elsewhere and for the world."""
+    arm = np.zeros(len(inv_m))
+    for c in rows:
+        arm[second[c]] = r_second[c]
+        arm[first[c]] = r_first[c]
+    watched = np.empty(len(inv_m), np.int64)
+    count = 0
+    for b in range(len(inv_m)):
+        if owned[b] and inv_m[b] > 0 and arm[b] > 0:
+            watched[count] = b
+            count += 1
+    return watched[:count].copy(), arm
 
 
 @njit(cache=True)

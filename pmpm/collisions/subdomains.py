@@ -196,8 +196,9 @@ def dense_blocks(halo: Halo, bodies, record, rows, warm_n, warm_t, settings, dt,
     v, w, inv_m, inv_i = bodies.v, bodies.w, bodies.inv_m, bodies.inv_i
     normal = record.normal
     closing, touching, hits, target, hit_time = targets(bodies, record, r_first, r_second, settings, dt)
-    lam_n, lam_t = np.zeros(m), np.zeros((m, 3))
-    lam_n[rows], lam_t[rows] = warm_n[rows], warm_t[rows]
+    solved = np.zeros(m, bool)
+    solved[rows] = True
+    lam_n, lam_t = np.where(solved, warm_n, 0.0), np.where(solved[:, None], warm_t, 0.0)
     members = bodies_in(rows, first, second, n)
     owned_members = members[halo.owned[members]]
     v0, w0 = v.copy(), w.copy()
@@ -258,27 +259,18 @@ def block_sweeps(halo: Halo, rows, contacts, target, mu, bodies, lam_n, lam_t, b
     first, second, normal, r_first, r_second, u_wall = contacts
     inv_m, inv_i, v, w = bodies
     impulses = kernels.impulses
-    a, b = first[rows], second[rows]
-    k_n = inv_m[a] + inv_m[b]
-    k_t = k_n + inv_i[a] * r_first[rows] ** 2 + inv_i[b] * r_second[rows] ** 2
-    inv_kn = np.divide(1.0, k_n, out=np.zeros(len(rows)), where=k_n > 0)
-    inv_kt = np.divide(1.0, k_t, out=np.zeros(len(rows)), where=k_t > 0)
-    arm = np.zeros(len(inv_m))
-    arm[b] = r_second[rows]   # a body's radius wherever it touches (0 for the world)
-    arm[a] = r_first[rows]
-    watched = np.flatnonzero(np.append(halo.owned, False) & (inv_m > 0) & (arm > 0))
     shared = np.zeros(len(inv_m), bool)
     shared[halo.shared_rows] = True
-    touches_shared = shared[a] | shared[b]
-    # border and inner contacts: rows, 1/k_n, 1/k_t, their impulses before a sweep, the conjugate direction
-    (border_rows, *border), (inner_rows, *inner) = [
-        (rows[where], inv_kn[where], inv_kt[where], np.empty((where.sum(), 4)), np.zeros((where.sum(), 4)))
-        for where in (touches_shared, ~touches_shared)]
+    # border and inner contacts; a rank changes the shared particles of its border contacts only
+    # (``changing``): those it passes on each sweep
+    border_rows, border_kn, border_kt, inner_rows, inner_kn, inner_kt, changing = impulses.split_at_shared(
+        rows, shared, first, second, r_first, r_second, inv_m, inv_i)
+    # each block's 1/k_n, 1/k_t, its impulses before a sweep and its conjugate direction
+    border = (border_kn, border_kt, np.empty((len(border_rows), 4)), np.zeros((len(border_rows), 4)))
+    inner = (inner_kn, inner_kt, np.empty((len(inner_rows), 4)), np.zeros((len(inner_rows), 4)))
+    watched, arm = impulses.watched_bodies(rows, first, second, r_first, r_second, inv_m, np.append(halo.owned, False))
     colour = halo.colours()
     neighbours = sorted(halo.shared_at, key=lambda r: colour[r])
-    # a rank changes the shared particles of its border contacts only: those it passes on each sweep
-    changing = np.zeros(len(inv_m), bool)
-    changing[first[border_rows]] = changing[second[border_rows]] = True
     passes = halo.passes(neighbours, changing)
     lower = [r for r in neighbours if colour[r] < colour[halo.comm.rank]]
     higher = [r for r in neighbours if colour[r] > colour[halo.comm.rank]]
@@ -286,7 +278,8 @@ def block_sweeps(halo: Halo, rows, contacts, target, mu, bodies, lam_n, lam_t, b
     stepped = (first, second, normal, r_first, r_second, inv_m, inv_i, v, w, lam_n, lam_t)
     done, previous, beta, stop = 0, 0.0, 2.0, False
     tests = []   # (request, its largest change) of the sweeps whose test is being reduced, oldest first
-    saved = np.hstack([v[watched], w[watched]])
+    saved = np.empty((len(watched), 6))
+    impulses.change_since(watched, v, w, arm, saved)   # (saved takes their velocities)
     impulses.conjugate_step(inner_rows, beta, inner[2], inner[3], *stepped, True)   # (β = 2: none; p = 0)
     while not stop:
         # the border's conjugate step (of the sweep before) and sweep after the lower colours', then the
