@@ -226,7 +226,7 @@ def big_bed_owned(n: int) -> None:
         memory, walls = result.memory, result.walls
         owner = partition.owner_of(state.x)   # migration
         moved = exchange_rows(comm, np.where(owner != comm.rank, owner, -1), particle_rows(state))
-        keep = particle_rows(state, owner == comm.rank)
+        keep = particle_rows(state, np.flatnonzero(owner == comm.rank))
         state = particles_of({name: np.concatenate([keep[name], moved[name]]) for name in keep})
         if step >= 20:
             seconds += elapsed

@@ -103,7 +103,7 @@ def main():
 
 
 def colouring(together: np.ndarray) -> int:
-    """How many colours ``pmpm.ownership.Halo.colours`` gives the ranks' graph (``together``: (P, P) bool)."""
+    """How many colours ``pmpm.halo.Halo.colours`` gives the ranks' graph (``together``: (P, P) bool)."""
     return int(greedy_colours([np.flatnonzero(row).tolist() for row in together]).max()) + 1
 
 

@@ -12,7 +12,7 @@ import numpy as np
 
 from .coupling import External, volume_fraction
 from .coupling.holders import Holders
-from .ownership import Halo
+from .halo import Halo
 from .particles import ParticleState
 from .reporting import StageTimes
 from .state import RunState

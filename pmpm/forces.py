@@ -20,7 +20,8 @@ from scipy.spatial import cKDTree
 
 from .arrays import sum_rows
 from .collisions import Walls, closest_points_on_triangles
-from .ownership import Halo, Partition
+from .halo import Halo
+from .ownership import Partition
 from .particles import ParticleState
 
 
@@ -85,7 +86,7 @@ def field_forces_of_case(state: ParticleState, walls: Walls | None, section, com
 
     With ``partition`` (collective over ``comm``): ``state`` holds the particles this rank owns, and
     the pairs reach the particles of other ranks within the cutoff through ghost copies of them
-    (``ownership.Halo``); the default cutoff is from the mean diameter over every rank."""
+    (``halo.Halo``); the default cutoff is from the mean diameter over every rank."""
     if partition is None:
         if len(state) == 0:
             return np.zeros((0, 3))

@@ -12,7 +12,8 @@ import pytest
 
 from pmpm.collisions import CollisionSettings, ContactMemory, Walls, advance_with_collisions
 from pmpm.collisions.subdomains import advance_owned
-from pmpm.ownership import Halo, Partition, bisect, gather
+from pmpm.halo import Halo
+from pmpm.ownership import Partition, bisect, gather
 from pmpm.particles import ParticleState
 from pmpm.state import RunState
 

@@ -41,7 +41,8 @@ from .settings import COLD_SWEEPS, ENERGY_TOL, SEARCH_SLACK, SWEEP_TOL, Collisio
 from .solver import Bodies, ContactStep, advance_with_collisions, remove_overlaps
 from .stats import CLAMPS, DEPOSITED, EXTRA, NAMES, SWEEPS, as_dict, new_counters
 from .walls import Walls
-from ..ownership import Halo, Partition, particle_rows, particles_of
+from ..halo import Halo
+from ..ownership import Partition, particle_rows, particles_of
 from ..particles import FREE, ParticleState
 
 
@@ -152,7 +153,7 @@ def gathered_step(comm, state, local, halo, record, walls, dt, settings, memory,
     involved = involved[:n] & halo.owned
     # the memory of the contacts of the particles sent (those whose lower-id particle is owned here)
     held = np.isin(memory.first_id, local.id[involved])
-    sent = (particle_rows(local, involved), {name: values[held] for name, values in memory.to_arrays().items()})
+    sent = (particle_rows(local, np.flatnonzero(involved)), {name: values[held] for name, values in memory.to_arrays().items()})
     halo.sent += (comm.size - 1) * sum(values.nbytes for part in sent for values in part.values())
     parts = comm.allgather(sent)
     cluster = particles_of({name: np.concatenate([part[0][name] for part in parts]) for name in parts[0][0]})

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 from mpi4py import MPI
 
-from ..ownership import Halo
+from ..halo import Halo
 
 
 @dataclass(frozen=True)
