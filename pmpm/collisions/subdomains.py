@@ -97,11 +97,10 @@ def advance_owned(comm, partition: Partition, state: ParticleState, walls: Walls
                                 used_walls, kernels, counters, extra)
     remove_overlaps(bodies, record, walls_after, kernels, extra, reach, thorough=False)
     rows = np.flatnonzero(halo.owned)
-    state.x[:] = bodies.x[rows]
-    free = state.motion == FREE
-    state.v[free] = bodies.v[rows][free]
-    state.omega[:] = bodies.w[rows]
-    state.deposited[:] = bodies.deposited[rows]
+    np.take(bodies.x, rows, axis=0, out=state.x)
+    np.copyto(state.v, np.take(bodies.v, rows, axis=0), where=(state.motion == FREE)[:, None])
+    np.take(bodies.w, rows, axis=0, out=state.omega)
+    np.take(bodies.deposited, rows, out=state.deposited)
     memory = ContactMemory.remember(record, local.id, lam_n, lam_t, mine)
     extra["exchanged_bytes"] = halo.sent
     return ContactStep(summed_stats(comm, counters, extra), memory, walls_after)
