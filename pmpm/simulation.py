@@ -134,9 +134,11 @@ def largest_diameter(case: Case) -> float:
     return 2.0 * max(radii)
 
 
-def initial_state(model: Model) -> RunState:
+def initial_state(model: Model, case_particles: bool = True) -> RunState:
     """Collective. The state at t = 0: fluid at rest, the case's particles (checked: inside the
-    domain, not overlapping each other or a wall)."""
+    domain, not overlapping each other or a wall); without ``case_particles`` none (a restart,
+    whose checkpoint holds the particles: checking the case's would take a quarter of a second
+    per 10,000)."""
     case, mesh = model.case, model.mesh
     walls = (build_walls(case, mesh, model.bodies) if (case.collisions or case.field_forces or case.deposition)
              else None)
@@ -145,7 +147,8 @@ def initial_state(model: Model) -> RunState:
                      np.zeros(mesh.n_local_cells) if fluid is not None else None, next_id=0, removed=0,
                      releases=(0,) * len(model.injectors), coupling=CouplingMemory() if fluid is not None else None,
                      walls=walls)
-    state = add_particles(model, state, initial_particles(case), validate=True)
+    if case_particles:
+        state = add_particles(model, state, initial_particles(case), validate=True)
     return distribute(model, replace(state, fresh_from=state.next_id))
 
 
@@ -279,10 +282,11 @@ class Simulation:
     """A model and its current run state: ``advance`` steps it, ``run`` runs the case to its end.
     Collective. For scripts and tests the state's parts are at hand as attributes."""
 
-    def __init__(self, comm, case: Case, mesh: Mesh, quiet: bool = False, state: RunState | None = None):
+    def __init__(self, comm, case: Case, mesh: Mesh, quiet: bool = False, state: RunState | None = None,
+                 case_particles: bool = True):
         self.comm, self.quiet = comm, quiet
         self.model = build_model(comm, case, mesh)
-        self.state = initial_state(self.model) if state is None else state
+        self.state = initial_state(self.model, case_particles) if state is None else state
         self.times = StageTimes()
 
     def advance(self, dt: float) -> None:
@@ -402,7 +406,7 @@ def run_from_arguments(comm, arguments) -> None:
     start = wallclock.perf_counter()
     mesh = build_mesh(comm, case)
     check_boundaries(case, mesh)
-    simulation = Simulation(comm, case, mesh, quiet=arguments.quiet)
+    simulation = Simulation(comm, case, mesh, quiet=arguments.quiet, case_particles=restart is None)
     if restart is not None:
         simulation.state = checkpoint.restore(comm, restart, simulation.model, simulation.state,
                                               Path(arguments.restart))
