@@ -152,7 +152,8 @@ def gathered_step(comm, state, local, halo, record, walls, dt, settings, memory,
     involved = involved[:n] & halo.owned
     # the memory of the contacts of the particles sent (those whose lower-id particle is owned here)
     held = np.isin(memory.first_id, local.id[involved])
-    sent = (particle_rows(local, np.flatnonzero(involved)), {name: values[held] for name, values in memory.to_arrays().items()})
+    sent = (particle_rows(local, np.flatnonzero(involved)),
+            {name: values[held] for name, values in memory.to_arrays().items()})
     halo.sent += (comm.size - 1) * sum(values.nbytes for part in sent for values in part.values())
     parts = comm.allgather(sent)
     cluster = particles_of({name: np.concatenate([part[0][name] for part in parts]) for name in parts[0][0]})
