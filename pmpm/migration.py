@@ -10,7 +10,8 @@ import numpy as np
 
 from .collisions import ContactMemory
 from .errors import NumericalError
-from .ownership import IMBALANCE, PARTICLE_FIELDS, bisect, exchange_groups, particle_rows
+from .ownership import (IMBALANCE, PARTICLE_FIELDS, bisect, exchange_groups, particle_rows, particle_work,
+                        rank_work)
 from .particles import ParticleState
 from .state import RunState
 
@@ -72,18 +73,20 @@ def migrate_particles(comm, exits, state: RunState, start: np.ndarray, dt: float
     changed rank) one exchange: the particles that left the domain are removed (``leaving``, the
     counts summed over ranks), the ones whose centre entered another rank's box go to it, with
     their last hydrodynamic force and the contact memory of the contacts whose lower-id particle
-    they are; when a rank owns more than ``ownership.IMBALANCE`` × the mean, the boxes are bisected
-    again first (with ``rebalance``; in a flow the boxes are the mesh's, and stay). A particle whose
-    state is not finite stops the run on every rank (NumericalError). Only the rows that leave and
-    arrive are moved (a step's migration moves a few of thousands)."""
+    they are; when a rank's work (``ownership.particle_work``: its particles and the remembered
+    contacts they solve) is more than ``ownership.IMBALANCE`` × the mean, the boxes are bisected
+    again by work first (with ``rebalance``; in a flow the boxes are the mesh's, and stay). A
+    particle whose state is not finite stops the run on every rank (NumericalError). Only the rows
+    that leave and arrive are moved (a step's migration moves a few of thousands)."""
     partition = state.partition
     particles = state.particles
     outside, through = leaving(exits, state, start)
     owner = partition.owner_of(particles.x)
     owner[outside] = -1
     to_others = int((owner >= 0).sum() - (owner == comm.rank).sum())
-    gathered = comm.allgather(((len(particles) - int(outside.sum()), to_others, int(outside.sum()),
-                                first_not_finite(particles, ~outside)), through))
+    memory = state.contacts if state.contacts is not None else ContactMemory.empty()
+    work = rank_work(len(particles) - int(outside.sum()), memory.second_id)
+    gathered = comm.allgather(((work, to_others, int(outside.sum()), first_not_finite(particles, ~outside)), through))
     counts = np.array([rank_counts for rank_counts, _ in gathered])
     if (counts[:, 3] >= 0).any():
         raise not_finite(int(counts[np.argmax(counts[:, 3] >= 0), 3]), state.step + 1, state.time + dt)
@@ -92,7 +95,8 @@ def migrate_particles(comm, exits, state: RunState, start: np.ndarray, dt: float
         removed_through = merged(removed_through, rank_through)
     state = replace(state, removed=state.removed + int(counts[:, 2].sum()), removed_through=removed_through)
     if rebalance and counts[:, 0].max() > IMBALANCE * max(counts[:, 0].mean(), 1.0) and counts[:, 0].max() >= 64:
-        partition = bisect(comm, particles.x[~outside])
+        work = particle_work(particles.id, memory.first_id, memory.second_id)
+        partition = bisect(comm, particles.x[~outside], work=work[~outside])
         owner = np.where(outside, -1, partition.owner_of(particles.x))
         state = replace(state, partition=partition)
     elif counts[:, 1].sum() == 0:

@@ -25,7 +25,8 @@ from numba import njit
 from .particles import ParticleState
 
 MAX_HOLDERS = 16       # the most ranks that may hold one particle (its owner and its ghosts')
-IMBALANCE = 1.02        # the boxes are bisected again when a rank owns this × the mean number of particles
+IMBALANCE = 1.02        # the boxes are bisected again when a rank's work is this × the mean (``particle_work``)
+CONTACT_WORK, WALL_CONTACT_WORK = 1.0, 3.0   # a remembered contact's work, in particles' (docs/collisions.md)
 BINS, ROUNDS = 64, 3    # a cut is placed by ROUNDS histograms of BINS bins (to 1/64³ of the particles' extent)
 PARTICLE_FIELDS = tuple(f.name for f in fields(ParticleState))
 
@@ -91,12 +92,13 @@ def _box_distances(x, lower, upper):
     return distance
 
 
-def bisect(comm, x: np.ndarray, domain: tuple | None = None) -> Partition:
+def bisect(comm, x: np.ndarray, domain: tuple | None = None, work: np.ndarray | None = None) -> Partition:
     """Collective. Boxes that share the particles (centres ``x``, this rank's, (n, 3)) evenly among
-    the ranks: each box with several ranks is cut across the longest extent of its particles, at
-    the share of its ranks on the lower side, level by level (one set of reductions per level). A
-    box without particles is cut across the middle of its part of ``domain`` ((lower, upper) (3,)
-    each, m; the domain's bounding box), or at 0 without one."""
+    the ranks, by count or by ``work`` (n,) per particle: each box with several ranks is cut across
+    the longest extent of its particles, at the share of its ranks on the lower side, level by
+    level (one set of reductions per level). A box without particles is cut across the middle of
+    its part of ``domain`` ((lower, upper) (3,) each, m; the domain's bounding box), or at 0
+    without one."""
     ranks = comm.size
     nodes = [(np.full(3, -np.inf), np.full(3, np.inf), 0, ranks)]   # (lower, upper, first rank, ranks)
     while any(count > 1 for *_, count in nodes):
@@ -122,7 +124,7 @@ def bisect(comm, x: np.ndarray, domain: tuple | None = None) -> Partition:
         share = np.array([(nodes[k][3] // 2) / nodes[k][3] for k in split])
         coordinate = np.where(held, x[np.arange(len(x)), axis[np.maximum(node, 0)]] if len(x) else 0.0, 0.0)
         cut = quantile_cut(comm, coordinate, node, low[np.arange(len(split)), axis],
-                           high[np.arange(len(split)), axis], share)
+                           high[np.arange(len(split)), axis], share, work)
         children = []
         for k, (lo, hi, first, count) in enumerate(nodes):
             if count == 1:
@@ -139,28 +141,51 @@ def bisect(comm, x: np.ndarray, domain: tuple | None = None) -> Partition:
 
 
 def quantile_cut(comm, coordinate: np.ndarray, node: np.ndarray, low: np.ndarray, high: np.ndarray,
-                 share: np.ndarray) -> np.ndarray:
-    """Collective. Per node, a coordinate below which ``share`` of its particles lie (``coordinate``
-    and ``node`` per particle, node −1: in none), narrowed by ROUNDS histograms summed over ranks;
-    the midpoint of [low, high] for a node without particles."""
+                 share: np.ndarray, work: np.ndarray | None = None) -> np.ndarray:
+    """Collective. Per node, a coordinate below which ``share`` of its particles lie, or of their
+    ``work`` (``coordinate``, ``node`` and ``work`` per particle, node −1: in none), narrowed by
+    ROUNDS histograms summed over ranks; the midpoint of [low, high] for a node without particles."""
     nodes = len(low)
     held = node >= 0
+    work = np.ones(len(node)) if work is None else np.asarray(work, float)
     lo, hi = low.astype(float).copy(), high.astype(float).copy()
-    below = np.zeros(nodes)                       # particles below lo, per node
-    total = np.bincount(node[held], minlength=nodes).astype(float)
+    below = np.zeros(nodes)                       # the work below lo, per node
+    total = np.bincount(node[held], work[held], minlength=nodes).astype(float)
     comm.Allreduce(MPI.IN_PLACE, total, op=MPI.SUM)
     target = share * total
     for _ in range(ROUNDS):
         width = np.maximum(hi - lo, 1e-300)
         b = np.floor((coordinate[held] - lo[node[held]]) / width[node[held]] * BINS).astype(np.int64)
         inside = (b >= 0) & (b < BINS)
-        counts = np.bincount(node[held][inside] * BINS + b[inside], minlength=nodes * BINS).astype(float)
+        counts = np.bincount(node[held][inside] * BINS + b[inside], work[held][inside],
+                             minlength=nodes * BINS).astype(float)   # (int64 when none is inside)
         comm.Allreduce(MPI.IN_PLACE, counts, op=MPI.SUM)
         running = below[:, None] + np.cumsum(counts.reshape(nodes, BINS), axis=1)
         k = np.minimum((running < target[:, None]).sum(axis=1), BINS - 1)   # the bin where the share is reached
         below = np.where(k > 0, running[np.arange(nodes), np.maximum(k - 1, 0)], below)
         lo, hi = lo + width * k / BINS, lo + width * (k + 1) / BINS
     return np.where(total > 0, hi, 0.5 * (low + high))
+
+
+def particle_work(ids: np.ndarray, first_id: np.ndarray, second_id: np.ndarray) -> np.ndarray:
+    """(n,) each particle's share of a contact step's work, in units of a particle without
+    contacts: 1 + ``CONTACT_WORK`` per remembered contact with another particle and
+    ``WALL_CONTACT_WORK`` per one with a wall, counted on the particle that solves it (the
+    contact's lower-id one: ``first_id``; ``second_id`` < 0 for a wall; both sorted by first_id).
+    ``ids`` (n,) sorted. The lower box of a hopper has more contacts per particle, and its cone's
+    wall contacts, which the wall search, the narrow phase and the sweeps all pay for."""
+    work = np.ones(len(ids))
+    for cost, rows in ((CONTACT_WORK, second_id >= 0), (WALL_CONTACT_WORK, second_id < 0)):
+        first = first_id[rows]
+        work += cost * (np.searchsorted(first, ids, "right") - np.searchsorted(first, ids, "left"))
+    return work
+
+
+def rank_work(particles: int, second_id: np.ndarray) -> float:
+    """``particle_work`` summed over a rank's ``particles`` (a count), whose remembered contacts have
+    ``second_id`` (< 0 for a wall): the rebalancing test, without a pass over the particles."""
+    walls = int((second_id < 0).sum())
+    return particles + CONTACT_WORK * (len(second_id) - walls) + WALL_CONTACT_WORK * walls
 
 
 # ----------------------------------------------------------------------------------------------

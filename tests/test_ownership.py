@@ -339,3 +339,23 @@ def test_small_hopper_on_one_and_two_ranks(tmp_path):
         pairs = cKDTree(x).query_pairs(0.004, output_type="ndarray")
         gap = np.linalg.norm(x[pairs[:, 0]] - x[pairs[:, 1]], axis=1) - 0.004
         assert gap.min(initial=0.0) > -0.15 * 0.004
+
+
+@pytest.mark.mpi
+def test_bisection_by_work_and_the_work_of_contacts(comm):
+    """The cut shares the particles' work, not their count: spheres spread evenly along x in [0, 1],
+    those below 0.5 with three times the work, are cut at x = 1/3 (to 1/64² of the extent), where
+    each side holds half the work; and a particle's work is 1 + 1 per remembered contact it solves
+    with another particle + 3 per one with a wall (``particle_work``; a contact counted on its
+    lower-id particle)."""
+    from pmpm.ownership import particle_work
+    x = np.zeros((4000, 3))
+    x[:, 0] = (np.arange(4000) + 0.5 + 4000 * comm.rank) / (4000 * comm.size)
+    work = np.where(x[:, 0] < 0.5, 3.0, 1.0)
+    partition = bisect(comm, x, work=work)
+    if comm.size == 2:
+        assert partition.upper[0, 0] == partition.lower[1, 0]
+        assert abs(partition.upper[0, 0] - 1 / 3) < 1 / 64 ** 2
+    ids = np.array([3, 5, 8, 9])
+    first, second = np.array([3, 3, 3, 5, 9]), np.array([-4, 5, 8, -1, 12])   # 3: a wall and 2 pairs; 5: a wall
+    np.testing.assert_array_equal(particle_work(ids, first, second), [6.0, 4.0, 1.0, 2.0])
