@@ -66,7 +66,7 @@ class Halo:
         n_owned = len(particles)
         joined = {name: np.concatenate([getattr(particles, name), arrived[name]]) for name in PARTICLE_FIELDS}
         order = np.argsort(joined["id"], kind="stable")
-        local = ParticleState(**{name: np.take(joined[name], order, axis=0) for name in PARTICLE_FIELDS})
+        local = ParticleState(**{name: joined[name].take(order, axis=0) for name in PARTICLE_FIELDS})
         where = np.empty(len(order), np.int64)
         where[order] = np.arange(len(order))                 # joined row → local row
         owned = np.zeros(len(order), bool)

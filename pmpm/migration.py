@@ -106,7 +106,7 @@ def migrate_particles(comm, exits, state: RunState, start: np.ndarray, dt: float
                        hydro_torque=state.hydro_torque[~outside])
     gone = np.flatnonzero(owner != comm.rank)     # removed (owner −1), or to another rank
     rows = {**particle_rows(particles), "hydro_force": state.hydro_force, "hydro_torque": state.hydro_torque}
-    groups = [(owner[gone], {name: np.take(values, gone, axis=0) for name, values in rows.items()})]
+    groups = [(owner[gone], {name: values.take(gone, axis=0) for name, values in rows.items()})]
     contacts = state.contacts
     if contacts is not None:   # the memory goes where the contact's lower-id particle goes
         going = particles.id[gone]
@@ -115,7 +115,7 @@ def migrate_particles(comm, exits, state: RunState, start: np.ndarray, dt: float
         follows = np.repeat(begin - np.cumsum(count) + count, count) + np.arange(count.sum())
         memory = contacts.to_arrays()
         groups.append((np.repeat(owner[gone], count),
-                       {name: np.take(values, follows, axis=0) for name, values in memory.items()}))
+                       {name: values.take(follows, axis=0) for name, values in memory.items()}))
     arrived, *arrived_contacts = exchange_groups(comm, groups)   # (rows bound for −1 go nowhere)
     rows = spliced(rows, particles.id, gone, arrived, arrived["id"])
     state = replace(state, particles=ParticleState(**{name: rows[name] for name in PARTICLE_FIELDS}),
