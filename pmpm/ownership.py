@@ -4,9 +4,9 @@ A particle belongs to the rank whose box holds its centre. In a flow the boxes a
 (``Mesh.part_boxes``), so the owner holds the particle's centre cell. Without a flow (DEM-only
 runs) they are a recursive coordinate bisection of the *particles* (the mesh's own partition balances cells:
 in the hopper its cut lies above nearly every particle), planes cutting the longest extent of the
-particles in proportion to the ranks on each side, computed from histograms summed over ranks
-(no rank ever holds every particle), and computed again when the particle counts drift apart
-(``IMBALANCE``). The outer boxes reach to infinity, so every point has exactly one owner.
+particles' work (``particle_work``: the particle and the contacts it solves) in proportion to the
+ranks on each side, computed from histograms summed over ranks (no rank ever holds every
+particle), and computed again when the ranks' work drifts apart (``IMBALANCE``). The outer boxes reach to infinity, so every point has exactly one owner.
 
 Each rank holds its owned particles (sorted by id) and, during a contact step, ghost copies of the
 particles of other ranks within a given distance of its box (``pmpm.halo.Halo``): read-only

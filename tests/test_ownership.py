@@ -347,8 +347,8 @@ def test_bisection_by_work_and_the_work_of_contacts(comm):
     those below 0.5 with three times the work, are cut at x = 1/3 (to 1/64² of the extent), where
     each side holds half the work; and a particle's work is 1 + 1 per remembered contact it solves
     with another particle + 3 per one with a wall (``particle_work``; a contact counted on its
-    lower-id particle)."""
-    from pmpm.ownership import particle_work
+    lower-id particle), summed by ``rank_work`` from counts."""
+    from pmpm.ownership import particle_work, rank_work
     x = np.zeros((4000, 3))
     x[:, 0] = (np.arange(4000) + 0.5 + 4000 * comm.rank) / (4000 * comm.size)
     work = np.where(x[:, 0] < 0.5, 3.0, 1.0)
@@ -359,3 +359,4 @@ def test_bisection_by_work_and_the_work_of_contacts(comm):
     ids = np.array([3, 5, 8, 9])
     first, second = np.array([3, 3, 3, 5, 9]), np.array([-4, 5, 8, -1, 12])   # 3: a wall and 2 pairs; 5: a wall
     np.testing.assert_array_equal(particle_work(ids, first, second), [6.0, 4.0, 1.0, 2.0])
+    assert rank_work(len(ids), second) == 13.0   # the rebalancing test's sum, from counts
