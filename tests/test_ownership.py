@@ -118,6 +118,51 @@ def test_spliced_rows_are_the_sorted_rows_less_those_dropped_plus_those_added():
             np.testing.assert_array_equal(result[name], every[name][order])
 
 
+def test_block_sweep_set_up_and_the_holders_pairs_against_plain_numpy():
+    """The compiled set-up of the block sweeps (``impulses.split_at_shared``, ``watched_bodies``)
+    and the halo's pairs of holders (``halo._held_with``) give what the numpy they replaced gave:
+    contacts among 40 bodies and a world row (one of infinite mass, walls with arm 0), some
+    bodies shared; holders rows ending in −1."""
+    from pmpm.collisions.impulses import split_at_shared, watched_bodies
+    from pmpm.halo import _held_with
+    rng = np.random.default_rng(5)
+    n, m = 40, 120
+    first = rng.integers(0, n, m)
+    second = np.where(rng.random(m) < 0.2, n, rng.integers(0, n, m))     # a fifth with the world (row n)
+    radius = np.append(rng.uniform(0.001, 0.002, n), 0.0)
+    r_first, r_second = radius[first], np.where(second == n, 0.0, radius[second])
+    inv_m = np.append(rng.uniform(1.0, 2.0, n), 0.0)
+    inv_m[7] = 0.0                                                       # a fixed particle
+    inv_i = np.append(rng.uniform(1e5, 2e5, n), 0.0)
+    shared, owned = rng.random(n + 1) < 0.3, np.append(rng.random(n) < 0.7, False)
+    rows = np.sort(rng.choice(m, 90, replace=False))
+    border_rows, border_kn, border_kt, inner_rows, inner_kn, inner_kt, changing = split_at_shared(
+        rows, shared, first, second, r_first, r_second, inv_m, inv_i)
+    a, b = first[rows], second[rows]
+    k_n = inv_m[a] + inv_m[b]
+    k_t = k_n + inv_i[a] * r_first[rows] ** 2 + inv_i[b] * r_second[rows] ** 2
+    inv_kn = np.divide(1.0, k_n, out=np.zeros(len(rows)), where=k_n > 0)
+    inv_kt = np.divide(1.0, k_t, out=np.zeros(len(rows)), where=k_t > 0)
+    touches = shared[a] | shared[b]
+    for got, want in ((border_rows, rows[touches]), (border_kn, inv_kn[touches]), (border_kt, inv_kt[touches]),
+                      (inner_rows, rows[~touches]), (inner_kn, inv_kn[~touches]), (inner_kt, inv_kt[~touches])):
+        np.testing.assert_array_equal(got, want)
+    expected = np.zeros(n + 1, bool)
+    expected[first[rows[touches]]] = expected[second[rows[touches]]] = True
+    np.testing.assert_array_equal(changing, expected)
+    watched, arm = watched_bodies(rows, first, second, r_first, r_second, inv_m, owned)
+    plain_arm = np.zeros(n + 1)
+    plain_arm[b], plain_arm[a] = r_second[rows], r_first[rows]
+    np.testing.assert_array_equal(arm, plain_arm)
+    np.testing.assert_array_equal(watched, np.flatnonzero(owned & (inv_m > 0) & (plain_arm > 0)))
+    holders = np.full((6, 4), -1, np.int32)
+    holders[:, 0], holders[:3, 1], holders[1, 2] = 1, 0, 2
+    local_row, other = _held_with(np.arange(10, 16), holders, 1)
+    keep = (holders >= 0) & (holders != 1)
+    np.testing.assert_array_equal(local_row, np.repeat(np.arange(10, 16), 4)[keep.ravel()])
+    np.testing.assert_array_equal(other, holders.ravel()[keep.ravel()])
+
+
 @pytest.mark.mpi
 def test_pair_across_the_cut_gives_the_one_rank_result(comm):
     """Two spheres meeting head-on and obliquely across x = 0, one on each rank: positions, velocities
