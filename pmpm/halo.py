@@ -202,22 +202,11 @@ def _depths(x, lower, upper):
     return depth
 
 
-@njit(cache=True)
 def _held_with(rows, holders, rank):
     """(local rows, other ranks): each row of ``rows`` paired with every rank but ``rank`` that holds
     it (``holders``: a row of rank numbers per row, −1 past the last)."""
-    count = 0
-    for i in range(len(rows)):
-        for j in range(holders.shape[1]):
-            count += holders[i, j] >= 0 and holders[i, j] != rank
-    local_row, other = np.empty(count, np.int64), np.empty(count, holders.dtype)
-    count = 0
-    for i in range(len(rows)):
-        for j in range(holders.shape[1]):
-            if holders[i, j] >= 0 and holders[i, j] != rank:
-                local_row[count], other[count] = rows[i], holders[i, j]
-                count += 1
-    return local_row, other
+    row, column = np.nonzero((holders >= 0) & (holders != rank))
+    return rows[row], holders[row, column]
 
 
 @njit(cache=True)

@@ -84,8 +84,8 @@ def migrate_particles(comm, exits, state: RunState, start: np.ndarray, dt: float
     owner = partition.owner_of(particles.x)
     owner[outside] = -1
     to_others = int((owner >= 0).sum() - (owner == comm.rank).sum())
-    memory = state.contacts if state.contacts is not None else ContactMemory.empty()
-    work = rank_work(len(particles) - int(outside.sum()), memory.second_id)
+    remembered = state.contacts if state.contacts is not None else ContactMemory.empty()
+    work = rank_work(len(particles) - int(outside.sum()), remembered.second_id)
     gathered = comm.allgather(((work, to_others, int(outside.sum()), first_not_finite(particles, ~outside)), through))
     counts = np.array([rank_counts for rank_counts, _ in gathered])
     if (counts[:, 3] >= 0).any():
@@ -95,8 +95,8 @@ def migrate_particles(comm, exits, state: RunState, start: np.ndarray, dt: float
         removed_through = merged(removed_through, rank_through)
     state = replace(state, removed=state.removed + int(counts[:, 2].sum()), removed_through=removed_through)
     if rebalance and counts[:, 0].max() > IMBALANCE * max(counts[:, 0].mean(), 1.0) and counts[:, 0].max() >= 64:
-        work = particle_work(particles.id, memory.first_id, memory.second_id)
-        partition = bisect(comm, particles.x[~outside], work=work[~outside])
+        each = particle_work(particles.id, remembered.first_id, remembered.second_id)
+        partition = bisect(comm, particles.x[~outside], work=each[~outside])
         owner = np.where(outside, -1, partition.owner_of(particles.x))
         state = replace(state, partition=partition)
     elif counts[:, 1].sum() == 0:

@@ -6,7 +6,8 @@ runs) they are a recursive coordinate bisection of the *particles* (the mesh's o
 in the hopper its cut lies above nearly every particle), planes cutting the longest extent of the
 particles' work (``particle_work``: the particle and the contacts it solves) in proportion to the
 ranks on each side, computed from histograms summed over ranks (no rank ever holds every
-particle), and computed again when the ranks' work drifts apart (``IMBALANCE``). The outer boxes reach to infinity, so every point has exactly one owner.
+particle), and computed again when the ranks' work drifts apart (``IMBALANCE``). The outer boxes
+reach to infinity, so every point has exactly one owner.
 
 Each rank holds its owned particles (sorted by id) and, during a contact step, ghost copies of the
 particles of other ranks within a given distance of its box (``pmpm.halo.Halo``): read-only
