@@ -118,13 +118,16 @@ def find_contacts(bodies, walls: Walls | None, dt: float, reach: float, restitut
     # a dense step needs only the contacts that can act; an event step all within reach
     take = np.flatnonzero(acts if dense else keep)
     k = len(take)
-    parts = [ContactRecord(pairs[take, 0], pairs[take, 1], np.full(k, -1), normal[take], gap[take], np.ones(k, bool),
-                           time[take], np.zeros((k, 3)), np.full(k, restitution), np.full(k, friction), np.zeros(k))]
+    # both parts come sorted (pairs by (i, j), walls by particle then triangle)
+    pair_record = ContactRecord(pairs[take, 0], pairs[take, 1], np.full(k, -1), normal[take], gap[take],
+                                np.ones(k, bool), time[take], np.zeros((k, 3)), np.full(k, restitution),
+                                np.full(k, friction), np.zeros(k))
+    wall_record = None
     if wall_part is not None:
         p, tri, keep, acts, normal, gap, face, u_wall, time = wall_part
         take = np.flatnonzero(acts if dense else keep)
         p, tri = p[take], tri[take]
-        parts.append(ContactRecord(p, np.full(len(p), n), tri, normal[take], gap[take], face[take], time[take],
-                                   u_wall[take], walls.restitution[tri], walls.friction[tri],
-                                   walls.rolling_friction[tri]))
-    return ContactRecord.concatenate(parts), dense, acting
+        wall_record = ContactRecord(p, np.full(len(p), n), tri, normal[take], gap[take], face[take], time[take],
+                                    u_wall[take], walls.restitution[tri], walls.friction[tri],
+                                    walls.rolling_friction[tri])
+    return ContactRecord.merged(pair_record, wall_record), dense, acting
