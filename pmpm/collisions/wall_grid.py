@@ -19,13 +19,18 @@ from .contact_times import cross, dot, sub, vec
 def cell_range(low, high, lower, cell, dims):
     """The cell index ranges (inclusive) of the box [low, high] in each axis, clamped to the grid:
     a box beyond the grid's last cell gets that cell (the triangles on the grid's upper faces,
-    whose index comes out as ``dims``, and points beyond them; the sphere tests sort them out)."""
-    first = np.empty(3, np.int64)
-    last = np.empty(3, np.int64)
-    for d in range(3):
-        first[d] = min(max(int(np.floor((low[d] - lower[d]) / cell)), 0), dims[d] - 1)
-        last[d] = max(min(int(np.floor((high[d] - lower[d]) / cell)), dims[d] - 1), 0)
-    return first, last
+    whose index comes out as ``dims``, and points beyond them; the sphere tests sort them out).
+    Two 3-tuples (first, last): no arrays allocated (one query per particle and step)."""
+    return ((cell_of(low[0], lower[0], cell, dims[0]), cell_of(low[1], lower[1], cell, dims[1]),
+             cell_of(low[2], lower[2], cell, dims[2])),
+            (cell_of(high[0], lower[0], cell, dims[0]), cell_of(high[1], lower[1], cell, dims[1]),
+             cell_of(high[2], lower[2], cell, dims[2])))
+
+
+@njit(cache=True)
+def cell_of(value, lower, cell, size):
+    """The cell along one axis holding ``value``, clamped to [0, size − 1]."""
+    return min(max(int(np.floor((value - lower) / cell)), 0), size - 1)
 
 
 @njit(cache=True)
