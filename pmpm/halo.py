@@ -31,8 +31,9 @@ class Halo:
     no ghost. ``merge`` takes one message each way between ranks that hold a particle together:
     each holder sends its change to the others, and all add the changes in rank order.
     ``post_shared`` / ``take_shared`` pass the shared rows' values on from one rank to the next, in
-    the order of ``colours`` (the block Gauss–Seidel's sweeps): those of the rows each rank changes
-    (``passes``, agreed once per step).
+    the order of ``colours`` (the block Gauss–Seidel's sweeps): those of the rows both ranks change
+    (``passes``, agreed once per step); ``pass_rest`` sends the rows only the sender changes once,
+    after the last sweep.
     """
 
     comm: object
@@ -130,35 +131,51 @@ class Halo:
 
     def passes(self, ranks, changing: np.ndarray) -> dict:
         """Collective among ``ranks`` (those this rank shares particles with). Per rank r of them,
-        (the local rows this rank passes on to r, those r passes on here): of the particles both
-        hold, those ``changing`` (bool per local row) here, and there (one message each way)."""
+        of the particles both hold: (the local rows this rank passes on to r each sweep, those r
+        passes on here each sweep, those this rank passes on to r after the last sweep, those r
+        passes on here then). Each sweep, the rows ``changing`` (bool per local row) on both ranks;
+        after the last, the rows changing on the sender only (the receiver's sweeps never read
+        them: half the rows of a hopper's sweeps). One message each way."""
         rows = {r: self.shared_rows[self.shared_at[r]] for r in ranks}
         masks = {r: changing[rows[r]].astype(np.uint8) for r in ranks}
         theirs = {r: np.empty_like(mask) for r, mask in masks.items()}
         requests = [self.comm.Irecv(theirs[r], source=r, tag=80) for r in ranks]
         requests += [self.comm.Isend(masks[r], dest=r, tag=80) for r in ranks]
         MPI.Request.Waitall(requests)
-        return {r: (rows[r][masks[r] > 0], rows[r][theirs[r] > 0]) for r in ranks}
+        passes = {}
+        for r in ranks:
+            mine, other = masks[r] > 0, theirs[r] > 0
+            passes[r] = (rows[r][mine & other], rows[r][mine & other], rows[r][mine & ~other], rows[r][other & ~mine])
+        return passes
 
-    def post_shared(self, passes: dict, ranks, *arrays: np.ndarray) -> list:
-        """Send each of ``ranks`` the rows of ``arrays`` (2-D) it is passed (``passes``), side by
-        side, without waiting; returns (request, buffer) pairs: wait on the requests before the buffers go."""
+    def post_shared(self, passes: dict, ranks, *arrays: np.ndarray, after: bool = False) -> list:
+        """Send each of ``ranks`` the rows of ``arrays`` (2-D) it is passed each sweep (``passes``;
+        with ``after``, those passed after the last sweep), side by side, without waiting; returns
+        (request, buffer) pairs: wait on the requests before the buffers go."""
         requests = []
         for r in ranks:
-            block = _rows_of(passes[r][0], arrays)
+            block = _rows_of(passes[r][2 if after else 0], arrays)
             self.sent += block.nbytes
-            requests.append((self.comm.Isend(block, dest=r, tag=79), block))
+            requests.append((self.comm.Isend(block, dest=r, tag=76 if after else 79), block))
         return requests
 
-    def take_shared(self, passes: dict, ranks, *arrays: np.ndarray) -> None:
+    def take_shared(self, passes: dict, ranks, *arrays: np.ndarray, after: bool = False) -> None:
         """Receive from each of ``ranks``, in that order, what its ``post_shared`` sent, and set the
         rows it passes here (``passes``) to it (the later rank's value where two send one)."""
         width = sum(array.shape[1] for array in arrays)
         for r in ranks:
-            rows = passes[r][1]
+            rows = passes[r][3 if after else 1]
             block = np.empty((len(rows), width))
-            self.comm.Recv(block, source=r, tag=79)
+            self.comm.Recv(block, source=r, tag=76 if after else 79)
             _set_rows(rows, block, arrays)
+
+    def pass_rest(self, passes: dict, ranks, *arrays: np.ndarray) -> None:
+        """Collective among ``ranks`` (in colour order). After the last sweep, the rows only the
+        sender changed (``passes``): every holder then has every shared row as if all had been
+        passed each sweep (a row only one rank changes keeps, on the others, its last value)."""
+        posted = self.post_shared(passes, ranks, *arrays, after=True)
+        self.take_shared(passes, ranks, *arrays, after=True)
+        MPI.Request.Waitall([request for request, _ in posted])
 
     def merge(self, reference: tuple, *arrays: np.ndarray) -> None:
         """Collective. Copies of particles changed by the ranks that hold them: each holder's change

@@ -305,6 +305,7 @@ def block_sweeps(halo: Halo, rows, contacts, target, mu, bodies, lam_n, lam_t, b
         largest = np.array([impulses.change_since(watched, v, w, arm, saved)])
         tests.append((halo.comm.Iallreduce(MPI.IN_PLACE, largest, op=MPI.MAX), largest))
     MPI.Request.Waitall([request for request, _ in tests])
+    halo.pass_rest(passes, neighbours, v, w)
     return done
 
 
