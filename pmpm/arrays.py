@@ -8,9 +8,16 @@ from __future__ import annotations
 import numpy as np
 
 
+def summed(index: np.ndarray, weights: np.ndarray, n: int) -> np.ndarray:
+    """(n,) float sums of ``weights`` by ``index``: np.bincount, whose sums come out as integers
+    when ``index`` is empty (numpy 1.24), which an MPI buffer or an HDF5 dataset of floats on
+    another rank then misreads."""
+    return np.bincount(index, weights, minlength=n).astype(float, copy=False)
+
+
 def sum_rows(index: np.ndarray, values: np.ndarray, n: int) -> np.ndarray:
-    """(n, 3) sums of the (k, 3) ``values`` by row ``index`` (np.bincount per component)."""
-    return np.column_stack([np.bincount(index, values[:, d], minlength=n) for d in range(3)])
+    """(n, 3) float sums of the (k, 3) ``values`` by row ``index`` (``summed`` per component)."""
+    return np.column_stack([summed(index, values[:, d], n) for d in range(3)])
 
 
 def cross(a, b) -> np.ndarray:

@@ -20,6 +20,7 @@ import numpy as np
 from mpi4py import MPI
 from petsc4py import PETSc
 
+from .arrays import summed
 from .errors import CaseError
 from .parallel import agree, allreduce_sum
 from .cell_bins import CellBins, holding_cells
@@ -362,8 +363,8 @@ class Mesh:
 
     def boundary_area(self) -> dict:
         """Collective. Total area of each named boundary (m²)."""
-        area = np.bincount(self.face_boundary[self.face_boundary >= 0], self.face_area[self.face_boundary >= 0],
-                           minlength=len(self.boundary_names))
+        on = self.face_boundary >= 0    # (a rank may hold no boundary face)
+        area = summed(self.face_boundary[on], self.face_area[on], len(self.boundary_names))
         self.comm.Allreduce(MPI.IN_PLACE, area, op=MPI.SUM)
         return dict(zip(self.boundary_names, area.tolist()))
 

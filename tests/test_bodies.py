@@ -301,3 +301,25 @@ def test_a_body_needs_a_fluid_or_collisions(tmp_path):
     path.write_text(SWEEP.format(omega=1.0).replace("[collisions]\nrestitution = 0.5\nfriction = 0.3\n", ""))
     with pytest.raises(CaseError, match=r"\[\[body\]\] acts on nothing without \[fluid\]"):
         load_case(path, [])
+
+
+@pytest.mark.mpi
+def test_the_force_on_a_body_in_one_ranks_cells_is_the_same_on_every_rank():
+    """A small box in one corner of the mesh covers cells of one rank only; the fluid's force and
+    torque on it, summed over the ranks, are the same floats on every rank (the other rank's empty
+    sum was once an array of integers, which the reduction misread into garbage there)."""
+    from types import SimpleNamespace
+    from pmpm.coupling.bodies import BodyForcing
+    comm = MPI.COMM_WORLD
+    mesh = Mesh.from_box(comm, [0.0, 0.0, 0.0], [1.0, 1.0, 1.0], (6, 6, 6))
+    box = body("box", center=(0.1, 0.1, 0.1), size=np.array([0.15, 0.15, 0.15]))
+    forcing = BodyForcing(mesh, [box], SimpleNamespace(penalty_strength=35.0, subcell_points=4), 1000.0, 1e-3)
+    u = np.tile([1.0, 0.5, 0.0], (mesh.n_local_cells, 1))
+    passes = forcing.begin(0.0, u)
+    covering = comm.allgather(len(passes.cell))
+    assert sum(covering) > 0 and (comm.size == 1 or min(covering) == 0), covering
+    totals = forcing.forces(passes, u, 0.0)
+    every = comm.allgather(totals)
+    assert totals.dtype == np.float64 and np.isfinite(totals).all() and np.abs(totals[0, :3]).max() > 0
+    for other in every:
+        np.testing.assert_array_equal(other, totals)

@@ -178,6 +178,21 @@ def test_pair_across_the_cut_gives_the_one_rank_result(comm):
 
 
 @pytest.mark.mpi
+def test_a_pair_across_the_cut_in_the_block_sweeps_gives_the_one_rank_result(comm):
+    """The same pair, every step dense (block Gauss–Seidel over the ranks): the contact is solved
+    by rank 0, which owns the lower id, and changes rank 1's sphere, which rank 1's own sweeps never
+    touch (it is passed on once, after the last sweep): as on 1 rank, to round-off."""
+    r = 0.01
+    state = particles([[-0.02, 0.0, 0.1], [0.02, 0.004, 0.1]], v=[[1.0, 0.0, 0.0], [-1.0, 0.1, 0.0]], radius=r)
+    settings = CollisionSettings(restitution=0.8, friction=0.3, rest_speed=1e-9, dense_contacts=1, gather_contacts=0)
+    whole, owned, _ = run_both(comm, state, None, settings, 40, 1e-3, gravity=(0.0, 0.0, 0.0))
+    assert whole.v[0, 0] < 0 < whole.v[1, 0], "they bounced"
+    np.testing.assert_array_equal(owned.id, whole.id)
+    for name in ("x", "v", "omega"):
+        np.testing.assert_allclose(getattr(owned, name), getattr(whole, name), rtol=1e-12, atol=1e-15)
+
+
+@pytest.mark.mpi
 @pytest.mark.parametrize("dense_contacts", [256, 1])
 def test_resting_column_across_the_cut(comm, dense_contacts):
     """Six balls stacked on a floor, cut between the third and the fourth (z = 0.06): their contact

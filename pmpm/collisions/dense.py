@@ -19,7 +19,7 @@ from __future__ import annotations
 import numpy as np
 
 from . import jit
-from ..arrays import cross
+from ..arrays import cross, summed
 from .search import wall_arrays
 from .settings import COLD_SWEEPS, CONTACT_TOL, ENERGY_TOL, SWEEP_TOL
 from .stats import CLAMPS, PAIR, RESTING, SWEEPS, WALL
@@ -111,9 +111,8 @@ def finish(bodies, record, rows, lam_n, lam_t, v0, touching, hits, hit_time, dt,
     # each body's velocity changed at the impulse-weighted time of its contacts (0 touching, t_c
     # for an impact inside the step): before it the body moved at its old velocity
     strength = np.sqrt(lam_n[rows] ** 2 + (lam_t[rows] ** 2).sum(1))
-    weight = np.bincount(first[rows], strength, n + 1) + np.bincount(second[rows], strength, n + 1)
-    late = (np.bincount(first[rows], strength * hit_time[rows], n + 1)
-            + np.bincount(second[rows], strength * hit_time[rows], n + 1))
+    weight = summed(first[rows], strength, n + 1) + summed(second[rows], strength, n + 1)
+    late = summed(first[rows], strength * hit_time[rows], n + 1) + summed(second[rows], strength * hit_time[rows], n + 1)
     if to_owners is not None:
         to_owners(weight[:n], late[:n])
     changed_at = np.divide(late, weight, out=np.zeros(n + 1), where=weight > 0)
