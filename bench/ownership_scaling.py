@@ -8,13 +8,17 @@ cut into P boxes by ``ownership.bisect`` (in one process: the bisection's reduct
 sums of histograms, the same whole), and for each box the ghosts a contact step copies in
 (a dense step's rule: within r + r_max + two travels of the box) and the particles it shares (the rows of
 its sweeps' messages) are counted, and the ranks coloured as the block Gauss–Seidel colours them
-(greedy, two ranks sharing a particle apart). Printed per P: the most owned and ghost particles of
-a rank, the bytes a rank sends per step (ghosts once, 170 B each; 48 B per shared particle per
-message: one after each of the K sweeps and one for the warm start), the neighbours it exchanges
-with, the colours, and a time per step
+(greedy, two ranks sharing a particle apart). The bed's contacts are its lattice neighbours (centres
+within 2.04 r), each solved by the owner of its lower-id sphere; a sweep's message from one rank to
+another carries the shared particles both ranks' contacts change, the rows only the sender changes
+go once after the last sweep (``halo.Halo.passes``). Printed per P: the most owned and ghost
+particles of a rank, its shared particles and the rows of its sweeps' messages, the bytes a rank
+sends per step (ghosts once, 170 B each; 48 B a row: every shared particle for the warm start, the
+sweep rows after each of the K sweeps, the rest once), the neighbours it exchanges with, the
+colours, and a time per step
 
-    t(P) = max(compute × (owned + ghosts), K × C × border) + (K + 1) × (neighbours × latency
-           + bytes per message / bandwidth) + K × (C − 1) × latency + 6 × log2(P) × latency
+    t(P) = max(compute × (owned + ghosts), K × C × border) + (K + 2) × neighbours × latency
+           + bytes of the messages / bandwidth + K × (C − 1) × latency + 6 × log2(P) × latency
 
 A sweep passes the shared particles' copies from colour to colour: the C colours' border contacts
 (those touching a shared particle) are swept one colour after another, each while the others sweep
@@ -30,6 +34,8 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import scipy.sparse
+from scipy.spatial import cKDTree
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -70,9 +76,10 @@ def main():
     width = state.radius + r + 2 * 1.0 * dt
     print(f"{n} spheres (r = {r} m), bed {np.ptp(state.x, axis=0).round(3)} m; compute {compute} µs/particle/step, "
           f"latency {latency} µs, bandwidth {bandwidth} GB/s, {sweeps} sweeps")
-    print(f"{'ranks':>6s} {'owned':>8s} {'ghosts':>8s} {'shared':>8s} {'neighbours':>10s} {'colours':>7s} "
-          f"{'kB/step':>9s} "
-          f"{'B/owned':>8s} {'model ms/step':>14s} {'speed-up':>9s}")
+    contacts = cKDTree(state.x).query_pairs(2.04 * r, output_type="ndarray")   # ids: the rows (i < j)
+    print(f"{len(contacts)} contacts (lattice neighbours)")
+    print(f"{'ranks':>6s} {'owned':>8s} {'ghosts':>8s} {'shared':>8s} {'rows/sweep':>10s} {'neighbours':>10s} "
+          f"{'colours':>7s} {'kB/step':>9s} {'B/owned':>8s} {'model ms/step':>14s} {'speed-up':>9s}")
     one = compute * n / 1000
     for p in ranks:
         partition = bisect(WholeComm(p), state.x)
@@ -90,16 +97,36 @@ def main():
         np.fill_diagonal(together, False)
         neighbours = int(together.sum(axis=1).max())
         colours = colouring(together)
+        sweep_rows, rest_rows = message_rows(held, owner[contacts.min(axis=1)], contacts, p)
         worst = int(np.argmax(owned + ghosts))
         ghost_bytes = 170 * ghosts[worst]   # a ghost's row: the particle's 98 B, its 16 holders, its row
-        message_bytes = 48 * shared_rows[worst]
-        sent = ghost_bytes + (sweeps + 1) * message_bytes
+        message_bytes = 48 * (shared_rows[worst] + sweeps * sweep_rows[worst] + rest_rows[worst])
+        sent = ghost_bytes + message_bytes
         border = SWEEP_SHARE * compute / sweeps * shared_rows.max()
         t = (max(compute * (owned[worst] + ghosts[worst]), sweeps * colours * border)
-             + (sweeps + 1) * (neighbours * latency + message_bytes / (bandwidth * 1e3))
+             + (sweeps + 2) * neighbours * latency + message_bytes / (bandwidth * 1e3)
              + sweeps * (colours - 1) * latency + 6 * math.log2(p) * latency) / 1000
-        print(f"{p:6d} {owned.max():8d} {ghosts.max():8d} {shared_rows.max():8d} {neighbours:10d} {colours:7d} "
-              f"{sent / 1e3:9.1f} {sent / owned[worst]:8.0f} {t:14.2f} {one / t:9.1f}", flush=True)
+        print(f"{p:6d} {owned.max():8d} {ghosts.max():8d} {shared_rows.max():8d} {sweep_rows.max():10d} "
+              f"{neighbours:10d} {colours:7d} {sent / 1e3:9.1f} {sent / owned[worst]:8.0f} {t:14.2f} {one / t:9.1f}",
+              flush=True)
+
+
+def message_rows(held: np.ndarray, solver: np.ndarray, contacts: np.ndarray, p: int) -> tuple:
+    """Per rank, the rows its sweeps' messages carry (to all its neighbours together) and the rows
+    it sends once after the last sweep: of the particles it shares with a neighbour, those both
+    ranks' contacts change, and those only its own do. ``held`` (n, P) bool; ``solver`` the rank
+    solving each of ``contacts`` (k, 2)."""
+    n = len(held)
+    ends = np.concatenate([contacts[:, 0], contacts[:, 1]])
+    changes = scipy.sparse.csr_matrix((np.ones(len(ends)), (ends, np.concatenate([solver, solver]))), shape=(n, p))
+    changes.data[:] = 1.0                                   # (duplicates summed: a particle changed by a rank)
+    holding = scipy.sparse.csr_matrix(held.astype(float))
+    changing = holding.multiply(changes).tocsr()            # held and changed there
+    both = (changing.T @ changing).toarray()                # [a, b]: shared rows both change
+    only = (changing.T @ holding).toarray() - both          # [a, b]: rows a changes, b holds, b does not change
+    np.fill_diagonal(both, 0.0)
+    np.fill_diagonal(only, 0.0)
+    return both.sum(axis=1).astype(int), only.sum(axis=1).astype(int)
 
 
 def colouring(together: np.ndarray) -> int:
