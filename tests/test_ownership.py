@@ -6,6 +6,7 @@ every particle), runs the owned particles through ``advance_owned`` and compares
 """
 import subprocess
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -399,6 +400,56 @@ def test_small_hopper_on_one_and_two_ranks(tmp_path):
         pairs = cKDTree(x).query_pairs(0.004, output_type="ndarray")
         gap = np.linalg.norm(x[pairs[:, 0]] - x[pairs[:, 1]], axis=1) - 0.004
         assert gap.min(initial=0.0) > -0.15 * 0.004
+
+
+THREE_RANKS = """
+import json, sys
+import numpy as np
+from mpi4py import MPI
+sys.path.insert(0, {tests!r})
+from test_ownership import particles, run_both
+from pmpm.collisions import CollisionSettings
+from pmpm.ownership import Partition
+comm = MPI.COMM_WORLD
+r, speed = 0.01, 0.5
+inf = np.inf
+# rank 0: x < 0, y < 0; rank 1: x >= 0; rank 2: x < 0, y >= 0 (the three boxes meet at the axis)
+partition = Partition(np.array([[-inf, -inf, -inf], [0.0, -inf, -inf], [-inf, 0.0, -inf]]),
+                      np.array([[0.0, 0.0, inf], [inf, inf, inf], [0.0, inf, inf]]))
+angle = np.radians([225.0, 345.0, 105.0])           # one sphere in each box, ids 0, 1, 2
+towards = -np.column_stack([np.cos(angle), np.sin(angle), np.zeros(3)])
+x = -towards * (2 * r / np.sqrt(3) + 0.2 * speed * 1e-3)
+state = particles(x, v=speed * towards, radius=r)
+settings = CollisionSettings(restitution=0.8, friction={friction}, rest_speed=1e-9, dense_contacts=1,
+                             gather_contacts=0, dense_sweeps=400)
+whole, owned, _ = run_both(comm, state, None, settings, 5, 1e-3, gravity=(0.0, 0.0, 0.0), partition=partition)
+if comm.rank == 0:
+    print(json.dumps({{"ids": owned.id.tolist(), "x": float(np.abs(owned.x - whole.x).max()),
+                      "v": float(np.abs(owned.v - whole.v).max()), "w": float(np.abs(owned.omega - whole.omega).max()),
+                      "speed": float(np.linalg.norm(whole.v, axis=1).min()),
+                      "outwards": float((whole.v * -towards).sum(axis=1).min())}}))
+"""
+
+
+def test_three_spheres_meeting_at_three_ranks_boxes(tmp_path):
+    """Three spheres closing on the point where three ranks' boxes meet (one in each), every step
+    dense: each contact is solved by the owner of its lower-id sphere, so the third rank solves none
+    and its sphere is changed by the two others (passed on after the last sweep), and the three
+    ranks take three colours. On 3 ranks (``mpirun -n 3``), converged (400 sweeps), as on 1 rank to
+    1e-9 of the speed, with friction and without."""
+    import json
+    for friction in (0.0, 0.3):
+        script = tmp_path / f"three_{friction}.py"
+        script.write_text(THREE_RANKS.format(tests=str(Path(__file__).resolve().parent), friction=friction))
+        result = subprocess.run(mpirun_command(3) + [str(script)], capture_output=True, text=True, timeout=300,
+                                env=subprocess_env())
+        assert result.returncode == 0, result.stderr[-2000:]
+        found = json.loads(result.stdout.strip().splitlines()[-1])
+        assert found["ids"] == [0, 1, 2]
+        assert found["outwards"] > 0.1, "they bounced apart"
+        for name in ("v", "w"):
+            assert found[name] < 1e-9 * 0.5, (friction, found)
+        assert found["x"] < 1e-9 * 0.5 * 5e-3, (friction, found)
 
 
 @pytest.mark.mpi

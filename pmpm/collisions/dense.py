@@ -112,7 +112,8 @@ def finish(bodies, record, rows, lam_n, lam_t, v0, touching, hits, hit_time, dt,
     # for an impact inside the step): before it the body moved at its old velocity
     strength = np.sqrt(lam_n[rows] ** 2 + (lam_t[rows] ** 2).sum(1))
     weight = summed(first[rows], strength, n + 1) + summed(second[rows], strength, n + 1)
-    late = summed(first[rows], strength * hit_time[rows], n + 1) + summed(second[rows], strength * hit_time[rows], n + 1)
+    late = (summed(first[rows], strength * hit_time[rows], n + 1)
+            + summed(second[rows], strength * hit_time[rows], n + 1))
     if to_owners is not None:
         to_owners(weight[:n], late[:n])
     changed_at = np.divide(late, weight, out=np.zeros(n + 1), where=weight > 0)
