@@ -135,7 +135,7 @@ class Halo:
         passes on here each sweep, those this rank passes on to r after the last sweep, those r
         passes on here then). Each sweep, the rows ``changing`` (bool per local row) on both ranks;
         after the last, the rows changing on the sender only (the receiver's sweeps never read
-        them: half the rows of a hopper's sweeps). One message each way."""
+        them). One message each way."""
         rows = {r: self.shared_rows[self.shared_at[r]] for r in ranks}
         masks = {r: changing[rows[r]].astype(np.uint8) for r in ranks}
         theirs = {r: np.empty_like(mask) for r, mask in masks.items()}
@@ -145,7 +145,8 @@ class Halo:
         passes = {}
         for r in ranks:
             mine, other = masks[r] > 0, theirs[r] > 0
-            passes[r] = (rows[r][mine & other], rows[r][mine & other], rows[r][mine & ~other], rows[r][other & ~mine])
+            both = rows[r][mine & other]       # (the same rows each way)
+            passes[r] = (both, both, rows[r][mine & ~other], rows[r][other & ~mine])
         return passes
 
     def post_shared(self, passes: dict, ranks, *arrays: np.ndarray, after: bool = False) -> list:

@@ -50,8 +50,8 @@ class ContactRecord:
     def merged(cls, pairs: "ContactRecord", walls: "ContactRecord | None") -> "ContactRecord":
         """The particle pairs and the wall contacts (second: the world row, past every particle),
         each sorted by (first, second, triangle), as one record in that order: each wall contact
-        goes after the pairs of its particle (a merge: a sort of the whole was 2 ms a step of the
-        10,000-sphere hopper, docs/collisions.md)."""
+        goes after the pairs of its particle (a merge, not a sort of the whole: docs/collisions.md,
+        "Thirteenth session")."""
         if walls is None or len(walls) == 0:
             return pairs
         m = len(pairs) + len(walls)
