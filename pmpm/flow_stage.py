@@ -10,6 +10,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from .arrays import summed
 from .coupling import External, volume_fraction
 from .coupling.holders import Holders
 from .halo import Halo
@@ -120,7 +121,7 @@ def displaced_volume(model: Model, particles: ParticleState, touched, injected: 
     new = injected[touched.particle]
     p, c = touched.particle[new], touched.cell[new]
     covered = touched.alpha[new] * mesh.cell_volume[c]
-    per_particle = holders.sum(np.bincount(p, covered, minlength=len(particles)).astype(float))
+    per_particle = holders.sum(summed(p, covered, len(particles)))
     share = covered / np.maximum(per_particle[p], np.finfo(float).tiny)
     source = np.zeros(mesh.n_local_cells)
     source[:mesh.n_owned_cells] = np.bincount(c, share * particles.volume[p] / dt, minlength=mesh.n_owned_cells)

@@ -173,7 +173,7 @@ class Halo:
     def pass_rest(self, passes: dict, ranks, *arrays: np.ndarray) -> None:
         """Collective among ``ranks`` (in colour order). After the last sweep, the rows only the
         sender changed (``passes``): every holder then has every shared row as if all had been
-        passed each sweep (a row only one rank changes keeps, on the others, its last value)."""
+        passed each sweep."""
         posted = self.post_shared(passes, ranks, *arrays, after=True)
         self.take_shared(passes, ranks, *arrays, after=True)
         MPI.Request.Waitall([request for request, _ in posted])

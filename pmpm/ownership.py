@@ -23,6 +23,7 @@ import numpy as np
 from mpi4py import MPI
 from numba import njit
 
+from .arrays import summed
 from .particles import ParticleState
 
 MAX_HOLDERS = 16       # the most ranks that may hold one particle (its owner and its ghosts')
@@ -151,15 +152,14 @@ def quantile_cut(comm, coordinate: np.ndarray, node: np.ndarray, low: np.ndarray
     work = np.ones(len(node)) if work is None else np.asarray(work, float)
     lo, hi = low.astype(float).copy(), high.astype(float).copy()
     below = np.zeros(nodes)                       # the work below lo, per node
-    total = np.bincount(node[held], work[held], minlength=nodes).astype(float)
+    total = summed(node[held], work[held], nodes)
     comm.Allreduce(MPI.IN_PLACE, total, op=MPI.SUM)
     target = share * total
     for _ in range(ROUNDS):
         width = np.maximum(hi - lo, 1e-300)
         b = np.floor((coordinate[held] - lo[node[held]]) / width[node[held]] * BINS).astype(np.int64)
         inside = (b >= 0) & (b < BINS)
-        counts = np.bincount(node[held][inside] * BINS + b[inside], work[held][inside],
-                             minlength=nodes * BINS).astype(float)   # (int64 when none is inside)
+        counts = summed(node[held][inside] * BINS + b[inside], work[held][inside], nodes * BINS)
         comm.Allreduce(MPI.IN_PLACE, counts, op=MPI.SUM)
         running = below[:, None] + np.cumsum(counts.reshape(nodes, BINS), axis=1)
         k = np.minimum((running < target[:, None]).sum(axis=1), BINS - 1)   # the bin where the share is reached

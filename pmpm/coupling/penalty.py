@@ -24,7 +24,7 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 
 import numpy as np
-from ..arrays import cross, sum_rows
+from ..arrays import cross, sum_rows, summed
 from ..fluid import FluidState
 from ..particles import ParticleState
 from .holders import Holders
@@ -181,7 +181,7 @@ class PenaltyForcing:
         p, c = touched.particle, touched.cell
         under = np.bincount(c, touched.smooth, minlength=n_owned)[c]
         outside = self.mesh.cell_volume[c] * np.maximum(1.0 - under, 0.0)
-        total = holders.sum(np.bincount(p, outside, minlength=len(state)).astype(float))
+        total = holders.sum(summed(p, outside, len(state)))
         relief = np.where((total > 0.0)[:, None], relief, 0.0)
         share = outside / np.where(total > 0.0, total, 1.0)[p]
         return relief, sum_rows(c, -share[:, None] * relief[p] / self.rho, n_owned)
@@ -293,9 +293,8 @@ class PenaltyForcing:
         along = np.einsum("ij,ij->i", u[c] - rigid, superficial[p])
         share = self.rho * self.mesh.cell_volume[c] * (1.0 - np.minimum(alpha[c], 1.0)) * along / (1 + kappa_cell * dt)
         n = len(state)   # the sensitivity along U_s, and the particle's cell size (α-weighted)
-        sums = passes.holders.sum(np.stack([np.bincount(p, share, minlength=n),
-                                            np.bincount(p, touched.alpha * self.locator.h[c], minlength=n),
-                                            np.bincount(p, touched.alpha, minlength=n)], axis=1).astype(float))
+        sums = passes.holders.sum(np.stack([summed(p, share, n), summed(p, touched.alpha * self.locator.h[c], n),
+                                            summed(p, touched.alpha, n)], axis=1))
         sums = sums.T
         h = sums[1] / np.maximum(sums[2], np.finfo(float).tiny)
         target, direction, relievable = self.correction.target(state, eps, superficial, h)
