@@ -85,29 +85,35 @@ class Halo:
         sent = sum(values.nbytes for values in rows.values())
         return cls(comm, owned, send, receive, shared_rows, shared_at, sent), local
 
-    def _swap(self, outgoing: dict, incoming: dict, array: np.ndarray, combine) -> None:
-        """Send array[outgoing[r]] to each r; each received block goes to array[incoming[r]] by ``combine``."""
-        shape = array.shape[1:]
+    def _swap(self, outgoing: dict, incoming: dict, arrays: tuple, combine) -> None:
+        """Send each array's rows ``outgoing[r]`` to each r, the arrays side by side in one message;
+        each received block goes to the arrays' rows ``incoming[r]`` by ``combine``. The arrays
+        (a row per local particle) share one dtype."""
+        if len({array.dtype for array in arrays}) > 1:
+            raise ValueError("Halo exchanges arrays of one dtype at a time")
+        widths = np.cumsum([0] + [int(np.prod(array.shape[1:])) for array in arrays])
         requests, buffers = [], {}
         for r, rows in incoming.items():
-            buffers[r] = np.empty((len(rows),) + shape, array.dtype)
+            buffers[r] = np.empty((len(rows), widths[-1]), arrays[0].dtype)
             requests.append(self.comm.Irecv(buffers[r], source=r, tag=77))
-        blocks = [np.ascontiguousarray(array[rows]) for rows in outgoing.values()]
+        blocks = [np.concatenate([array[rows].reshape(len(rows), -1) for array in arrays], axis=1)
+                  for rows in outgoing.values()]
         requests += [self.comm.Isend(block, dest=r, tag=77) for r, block in zip(outgoing, blocks)]
         self.sent += sum(block.nbytes for block in blocks)
         MPI.Request.Waitall(requests)
         for r, rows in incoming.items():
-            combine(array, rows, buffers[r])
+            for array, begin, end in zip(arrays, widths[:-1], widths[1:]):
+                combine(array, rows, buffers[r][:, begin:end].reshape((len(rows),) + array.shape[1:]))
 
     def to_ghosts(self, *arrays: np.ndarray) -> None:
-        """Collective. Each ghost row takes its owner's value, in place."""
-        for array in arrays:
-            self._swap(self.send, self.receive, array, _assign)
+        """Collective. Each ghost row takes its owner's value, in place (the arrays share a dtype)."""
+        self._swap(self.send, self.receive, arrays, _assign)
 
     def to_owners(self, *arrays: np.ndarray) -> None:
-        """Collective. Each ghost row is added to its owner's row and set to zero, in place."""
+        """Collective. Each ghost row is added to its owner's row and set to zero, in place (the
+        arrays share a dtype)."""
+        self._swap(self.receive, self.send, arrays, _add)
         for array in arrays:
-            self._swap(self.receive, self.send, array, _add)
             for rows in self.receive.values():
                 array[rows] = 0
 
@@ -120,13 +126,15 @@ class Halo:
 
     def max_over_holders(self, array: np.ndarray) -> np.ndarray:
         """Collective. As ``sum_over_holders``, the largest instead of the sum."""
-        self._swap(self.receive, self.send, array, _maximum)
+        self._swap(self.receive, self.send, (array,), _maximum)
         self.to_ghosts(array)
         return array
 
     def colours(self) -> np.ndarray:
         """Collective. (comm.size,) a colour per rank, ranks holding a particle together coloured
-        apart (``greedy_colours``; two ranks: 0 and 1), the same on every rank."""
+        apart (``greedy_colours``), the same on every rank. Two ranks: 0 and 1, without a message."""
+        if self.comm.size == 2:
+            return np.arange(2)
         return greedy_colours(self.comm.allgather(sorted(self.shared_at)))
 
     def passes(self, ranks, changing: np.ndarray) -> dict:

@@ -278,6 +278,34 @@ def test_particles_in_one_half_leave_ghosts_near_the_cut_only(comm):
 
 
 @pytest.mark.mpi
+def test_ghost_rows_go_to_their_owners_and_back_several_arrays_at_once(comm):
+    """The bed of the test above: rank 1's ghost rows of a 1-D and a (n, 3) array, exchanged in one
+    message, are added to rank 0's rows of the same particles and zeroed (``to_owners``); then the
+    owners' rows are copied to the ghosts (``to_ghosts``). Arrays of two dtypes are refused, and two
+    ranks take colours 0 and 1."""
+    r = 0.01
+    grid = np.stack(np.meshgrid(np.arange(8), np.arange(5), np.arange(2), indexing="ij"), -1).reshape(-1, 3)
+    state = particles((grid * 2.05 * r + [-0.155, 0.0, r]).astype(float), radius=r)
+    partition = halves(comm)
+    owned = state.without(partition.owner_of(state.x) != comm.rank)
+    halo, local = Halo.build(comm, partition, owned, (owned.radius + r + 1e-3) * (1 + 1e-9))
+    ones = np.ones(len(local))
+    by_id = np.stack([local.id, 2.0 * local.id, 3.0 * local.id], axis=1).astype(float)
+    halo.to_owners(ones, by_id)
+    ghost_ids = np.concatenate(comm.allgather(local.id[~halo.owned]))
+    twice = np.isin(local.id, ghost_ids) & halo.owned
+    assert np.array_equal(ones, np.where(twice, 2.0, np.where(halo.owned, 1.0, 0.0)))
+    expected = np.stack([local.id, 2.0 * local.id, 3.0 * local.id], axis=1) * ones[:, None]
+    assert np.array_equal(by_id, expected)
+    halo.to_ghosts(ones, by_id)
+    assert np.array_equal(ones, np.where(np.isin(local.id, ghost_ids), 2.0, 1.0))
+    with pytest.raises(ValueError, match="one dtype"):
+        halo.to_ghosts(ones, np.zeros(len(local), np.int64))
+    if comm.size == 2:
+        assert len(ghost_ids) == 10 and list(halo.colours()) == [0, 1]
+
+
+@pytest.mark.mpi
 @pytest.mark.parametrize("dense_contacts", [1, 256])
 def test_a_dense_step_takes_the_ghosts_its_contacts_need(comm, dense_contacts):
     """After a dense step (a contact memory), the next step's ghosts are the particles within
