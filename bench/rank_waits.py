@@ -2,7 +2,7 @@
 
     mpirun -n 2 .venv/bin/python bench/rank_waits.py CASE [pmpm options, e.g. --output DIR --restart FILE]
 
-Runs ``python -m pmpm`` with its communicator replaced by one that times each blocking call it
+Runs pmpm's command (``pmpm.__main__.main``) with its communicator replaced by one that times each blocking call it
 makes (the collectives, the blocking receives of the block sweeps and the waits on nonblocking
 messages, but for the sweeps' nonblocking test, ``Request.Wait``; the mesh keeps the plain world
 communicator, which PETSc needs), then prints per rank the whole run's wall time, the seconds
@@ -13,7 +13,6 @@ of per cent from one minute to the next on a shared machine (docs/collisions.md,
 """
 from __future__ import annotations
 
-import runpy
 import sys
 import time
 from pathlib import Path
@@ -58,13 +57,12 @@ def main() -> None:
     import pmpm.simulation as simulation
     build_mesh = simulation.build_mesh
     simulation.build_mesh = lambda comm, case: build_mesh(world, case)
+    from pmpm.__main__ import main as pmpm
     sys.argv = ["pmpm"] + sys.argv[1:]
     start = time.perf_counter()
-    try:
-        runpy.run_module("pmpm", run_name="__main__")
-    except SystemExit as exit_request:
-        if exit_request.code:
-            raise
+    status = pmpm(sys.argv[1:])   # (not ``python -m pmpm``'s way, which ends the process at once)
+    if status:
+        raise SystemExit(status)
     wall = time.perf_counter() - start
     ranks = world.gather((wall, dict(clock)), root=0)
     if world.rank != 0:
