@@ -2,14 +2,15 @@
 
     mpirun -n 2 .venv/bin/python bench/rank_waits.py CASE [pmpm options, e.g. --output DIR --restart FILE]
 
-Runs pmpm's command (``pmpm.__main__.main``) with its communicator replaced by one that times each blocking call it
-makes (the collectives, the blocking receives of the block sweeps and the waits on nonblocking
-messages, but for the sweeps' nonblocking test, ``Request.Wait``; the mesh keeps the plain world
-communicator, which PETSc needs), then prints per rank the whole run's wall time, the seconds
-spent in each kind of call and the rest, its busy time. A rank that waits much longer than another
-is waiting for it: the difference of their busy times is the imbalance, measured without a
-profiler (which slows the ranks unevenly) and without the noise of wall times that vary by tens
-of per cent from one minute to the next on a shared machine (docs/collisions.md, "Eighth session").
+Runs pmpm's command (``pmpm.__main__.main``) with its communicator replaced by one that times
+each blocking call it makes (the collectives, the blocking receives of the block sweeps and the
+waits on nonblocking messages, but for the sweeps' nonblocking test, ``Request.Wait``; the mesh
+keeps the plain world communicator, which PETSc needs), then prints per rank the whole run's wall
+time, the seconds spent in each kind of call and the rest, its busy time. A rank that waits much
+longer than another is waiting for it: the difference of their busy times is the imbalance,
+measured without a profiler (which slows the ranks unevenly) and without the noise of wall times
+that vary by tens of per cent from one minute to the next on a shared machine (docs/collisions.md,
+"Eighth session").
 """
 from __future__ import annotations
 

@@ -3,6 +3,7 @@ exchanges between the ranks that hold a particle together (``pmpm.ownership`` ha
 boxes and the moves of particles between them)."""
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -91,7 +92,7 @@ class Halo:
         (a row per local particle) share one dtype."""
         if len({array.dtype for array in arrays}) > 1:
             raise ValueError("Halo exchanges arrays of one dtype at a time")
-        widths = np.cumsum([0] + [int(np.prod(array.shape[1:])) for array in arrays])
+        widths = np.cumsum([0] + [math.prod(array.shape[1:]) for array in arrays])
         requests, buffers = [], {}
         for r, rows in incoming.items():
             buffers[r] = np.empty((len(rows), widths[-1]), arrays[0].dtype)

@@ -220,10 +220,9 @@ def dense_blocks(halo: Halo, bodies, record, rows, warm_n, warm_t, settings, dt,
     contacts = (first, second, normal, r_first, r_second, record.wall_velocity)
     sweeps = block_sweeps(halo, rows, contacts, target, record.friction, (inv_m, inv_i, v, w), lam_n, lam_t,
                           budget, tol, kernels)
-    after = np.array([impulses.kinetic_energy(owned_members, inv_m, inv_i, v, w)])
+    after = np.array([impulses.kinetic_energy(owned_members, inv_m, inv_i, v, w)])   # (summed over ranks)
     comm.Allreduce(MPI.IN_PLACE, after, op=MPI.SUM)
-    after = float(after[0])
-    if not driven and after > energy * (1 + ENERGY_TOL) + 1e-300:
+    if not driven and after[0] > energy * (1 + ENERGY_TOL) + 1e-300:
         # Newton's law over simultaneous contacts, or the ranks' blocks, can make energy: every
         # impulse scaled back (velocities and impulses alike) to the energy the bodies had
         counters[CLAMPS] += comm.rank == 0
