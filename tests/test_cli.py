@@ -214,6 +214,18 @@ def test_petsc_options_reach_the_solver_and_failure_exits_3(tmp_path):
     assert summary["status"] == "numerical failure"
 
 
+def test_the_command_ends_after_petscs_report(tmp_path):
+    """The command ends its process itself once its files are written (``__main__.leave``, without
+    the interpreter's teardown): PETSc is finalized first, so a ``-log_view`` report comes out
+    whole, to its last line, and the status is the run's."""
+    folder = make_case(tmp_path)
+    result = run_pmpm([folder, "--quiet", "-log_view"])
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.count("PETSc Performance Summary") == 1, result.stdout
+    assert "#End of PETSc Option Table entries" in result.stdout and "Using libraries:" in result.stdout
+    assert json.loads((folder / "output" / "summary.json").read_text())["status"] == "completed"
+
+
 def test_checkpoint_and_restart_continue_the_run(tmp_path):
     """A run stopped at t = 0.02 and restarted from its checkpoint (on another number of ranks)
     ends where the uninterrupted run ends; a bad checkpoint is refused with exit 2."""
