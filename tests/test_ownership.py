@@ -35,8 +35,9 @@ def halves(comm, axis: int = 0, at: float = 0.0) -> Partition:
 def particles(x, v=None, radius=0.01, density=2500.0) -> ParticleState:
     x = np.array(x, float).reshape(-1, 3)
     n = len(x)
-    return ParticleState.empty().appended(np.arange(n), x, np.zeros((n, 3)) if v is None else np.array(v, float),
-                                          np.zeros((n, 3)), np.full(n, radius), np.full(n, density), np.zeros(n, np.int8))
+    velocity = np.zeros((n, 3)) if v is None else np.array(v, float)
+    return ParticleState.empty().appended(np.arange(n), x, velocity, np.zeros((n, 3)), np.full(n, radius),
+                                          np.full(n, density), np.zeros(n, np.int8))
 
 
 def floor() -> Walls:
