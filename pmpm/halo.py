@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 from mpi4py import MPI
@@ -12,6 +13,15 @@ from numba import njit
 
 from .ownership import MAX_HOLDERS, PARTICLE_FIELDS, Partition, exchange_rows, greedy_colours, particle_rows
 from .particles import ParticleState
+
+
+class Pass(NamedTuple):
+    """The local rows of the particles this rank and one other hold together that pass between
+    them in the block sweeps (``Halo.passes``)."""
+
+    sweep: np.ndarray            # both ranks change them: sent and received after each sweep
+    sent_after: np.ndarray       # only this rank changes them: sent once, after the last sweep
+    received_after: np.ndarray   # only the other changes them: received then
 
 
 @dataclass
@@ -140,11 +150,9 @@ class Halo:
 
     def passes(self, ranks, changing: np.ndarray) -> dict:
         """Collective among ``ranks`` (those this rank shares particles with). Per rank r of them,
-        of the particles both hold: (the local rows this rank passes on to r each sweep, those r
-        passes on here each sweep, those this rank passes on to r after the last sweep, those r
-        passes on here then). Each sweep, the rows ``changing`` (bool per local row) on both ranks;
-        after the last, the rows changing on the sender only (the receiver's sweeps never read
-        them). One message each way."""
+        the ``Pass`` of the particles both hold: each sweep, the rows ``changing`` (bool per local
+        row) on both ranks; after the last, the rows changing on the sender only (the receiver's
+        sweeps never read them). One message each way."""
         rows = {r: self.shared_rows[self.shared_at[r]] for r in ranks}
         masks = {r: changing[rows[r]].astype(np.uint8) for r in ranks}
         theirs = {r: np.empty_like(mask) for r, mask in masks.items()}
@@ -154,8 +162,7 @@ class Halo:
         passes = {}
         for r in ranks:
             mine, other = masks[r] > 0, theirs[r] > 0
-            both = rows[r][mine & other]       # (the same rows each way)
-            passes[r] = (both, both, rows[r][mine & ~other], rows[r][other & ~mine])
+            passes[r] = Pass(rows[r][mine & other], rows[r][mine & ~other], rows[r][other & ~mine])
         return passes
 
     def post_shared(self, passes: dict, ranks, *arrays: np.ndarray, after: bool = False) -> list:
@@ -164,7 +171,7 @@ class Halo:
         (request, buffer) pairs: wait on the requests before the buffers go."""
         requests = []
         for r in ranks:
-            block = _rows_of(passes[r][2 if after else 0], arrays)
+            block = _rows_of(passes[r].sent_after if after else passes[r].sweep, arrays)
             self.sent += block.nbytes
             requests.append((self.comm.Isend(block, dest=r, tag=76 if after else 79), block))
         return requests
@@ -174,7 +181,7 @@ class Halo:
         rows it passes here (``passes``) to it (the later rank's value where two send one)."""
         width = sum(array.shape[1] for array in arrays)
         for r in ranks:
-            rows = passes[r][3 if after else 1]
+            rows = passes[r].received_after if after else passes[r].sweep
             block = np.empty((len(rows), width))
             self.comm.Recv(block, source=r, tag=76 if after else 79)
             _set_rows(rows, block, arrays)
