@@ -209,7 +209,8 @@ def big_bed_owned(n: int) -> None:
     (ghosts, merges per sweep; migration not included), the state's bytes per owned particle."""
     from mpi4py import MPI
     from pmpm.collisions.subdomains import advance_owned
-    from pmpm.ownership import bisect, exchange_rows, particle_rows, particles_of
+    from pmpm.ownership import bisect
+    from pmpm.packed import exchanged, merged, packed
     from pmpm.state import RunState
     comm = MPI.COMM_WORLD
     state, walls, settings, dt = bed_lattice(n)
@@ -225,9 +226,10 @@ def big_bed_owned(n: int) -> None:
         elapsed = comm.allreduce(time.perf_counter() - start, op=MPI.MAX)
         memory, walls = result.memory, result.walls
         owner = partition.owner_of(state.x)   # migration
-        moved = exchange_rows(comm, np.where(owner != comm.rank, owner, -1), particle_rows(state))
-        keep = particle_rows(state, np.flatnonzero(owner == comm.rank))
-        state = particles_of({name: np.concatenate([keep[name], moved[name]]) for name in keep})
+        going = np.flatnonzero(owner != comm.rank)
+        going = going[np.argsort(owner[going], kind="stable")]
+        [(moved, _)] = exchanged(comm, (owner[going], packed(state, going)))
+        state = merged(state, moved, owner == comm.rank)[0]
         if step >= 20:
             seconds += elapsed
             timed += 1

@@ -1,6 +1,6 @@
 """Ghost copies: the particles of other ranks that one rank holds during a contact step, and the
 exchanges between the ranks that hold a particle together (``pmpm.ownership`` has the ranks'
-boxes and the moves of particles between them)."""
+boxes, ``pmpm.packed`` the rows that move between them)."""
 from __future__ import annotations
 
 import math
@@ -11,7 +11,8 @@ import numpy as np
 from mpi4py import MPI
 from numba import njit
 
-from .ownership import MAX_HOLDERS, PARTICLE_FIELDS, Partition, exchange_rows, greedy_colours, particle_rows
+from .ownership import Partition, greedy_colours
+from .packed import FIELD_COLUMNS, X, exchanged, merged, packed
 from .particles import ParticleState
 
 
@@ -64,37 +65,30 @@ class Halo:
         near = np.flatnonzero(_depths(particles.x, partition.lower[comm.rank], partition.upper[comm.rank]) < width)
         reach = partition.distance(particles.x[near]) < width[near, None]
         reach[:, comm.rank] = False
-        row, rank = np.nonzero(reach)
+        rank, row = np.nonzero(reach.T)                     # grouped by rank, by id within each
         sources = near[row]
-        holders = np.full((len(near), MAX_HOLDERS), -1, np.int32)   # every rank holding the particle
-        count = reach.sum(axis=1)
-        if len(near) and count.max() >= MAX_HOLDERS:
-            raise RuntimeError(f"a particle is within contact range of {count.max() + 1} ranks' boxes; at most "
-                               f"{MAX_HOLDERS} are supported (fewer ranks, or larger boxes)")
-        holders[row, np.arange(len(row)) - np.searchsorted(row, row)] = rank
-        holders[np.arange(len(near)), count] = comm.rank
-        rows = {**particle_rows(particles, sources), "holders": holders[row]}
-        arrived = exchange_rows(comm, rank, {**rows, "from": np.full(len(sources), comm.rank)})
-        n_owned = len(particles)
-        joined = {name: np.concatenate([getattr(particles, name), arrived[name]]) for name in PARTICLE_FIELDS}
-        order = np.argsort(joined["id"], kind="stable")
-        local = ParticleState(**{name: joined[name].take(order, axis=0) for name in PARTICLE_FIELDS})
-        where = np.empty(len(order), np.int64)
-        where[order] = np.arange(len(order))                 # joined row → local row
-        owned = np.zeros(len(order), bool)
-        owned[where[:n_owned]] = True
-        send = {int(r): where[sources[rank == r]] for r in np.unique(rank)}   # in the order sent
-        ghost_rows = where[n_owned:]
-        receive = {int(r): ghost_rows[arrived["from"] == r] for r in np.unique(arrived["from"])}
-        # who holds what together: an owned particle with the ranks it went to, a ghost with its holders
-        local_row, other = _held_with(np.concatenate([where[near], ghost_rows]),
-                                      np.concatenate([holders, arrived["holders"]]), comm.rank)
-        pairs = np.lexsort((local_row, other))
-        shared_rows = np.unique(local_row)
-        shared_at = {int(r): np.searchsorted(shared_rows, local_row[pairs][other[pairs] == r])
-                     for r in np.unique(other)}
-        sent = sum(values.nbytes for values in rows.values())
-        return cls(comm, owned, send, receive, shared_rows, shared_at, sent), local
+        block = packed(particles, sources, width)   # (with the width: the receiver finds the holders)
+        [(arrived, offsets)] = exchanged(comm, (rank, block))
+        local, where, ghost_rows, _ = merged(particles, arrived)
+        owned = np.zeros(len(local), bool)
+        owned[where] = True
+        edges = np.searchsorted(rank, np.arange(comm.size + 1))
+        send = {int(r): where[sources[edges[r]:edges[r + 1]]] for r in np.flatnonzero(np.diff(edges))}
+        receive = {int(r): ghost_rows[offsets[r]:offsets[r + 1]] for r in np.flatnonzero(np.diff(offsets))}
+        # who holds what together: an owned particle with the ranks it went to; a ghost with every
+        # rank its owner sent it to (the same test on the same bits) and its owner
+        held = partition.distance(arrived[:, X:X + 3]) < arrived[:, FIELD_COLUMNS, None]
+        held[np.arange(len(arrived)), np.repeat(np.arange(comm.size), np.diff(offsets))] = True
+        held[:, comm.rank] = False
+        ghost, other = np.nonzero(held)
+        local_row, other = np.concatenate([where[sources], ghost_rows[ghost]]), np.concatenate([rank, other])
+        shared = np.zeros(len(local), bool)
+        shared[local_row] = True
+        shared_rows = np.flatnonzero(shared)
+        position = np.cumsum(shared) - 1                   # a shared local row's place in shared_rows
+        shared_at = {int(r): position[np.sort(local_row[other == r])]
+                     for r in np.flatnonzero(np.bincount(other, minlength=comm.size))}
+        return cls(comm, owned, send, receive, shared_rows, shared_at, block.nbytes), local
 
     def _swap(self, outgoing: dict, incoming: dict, arrays: tuple, combine) -> None:
         """Send each array's rows ``outgoing[r]`` to each r, the arrays side by side in one message;
@@ -234,13 +228,6 @@ def _depths(x, lower, upper):
         for d in range(3):
             depth[i] = min(depth[i], x[i, d] - lower[d], upper[d] - x[i, d])
     return depth
-
-
-def _held_with(rows, holders, rank):
-    """(local rows, other ranks): each row of ``rows`` paired with every rank but ``rank`` that holds
-    it (``holders``: a row of rank numbers per row, −1 past the last)."""
-    row, column = np.nonzero((holders >= 0) & (holders != rank))
-    return rows[row], holders[row, column]
 
 
 @njit(cache=True)

@@ -1,17 +1,18 @@
 """Stage 8: particles that left the domain are removed; where ranks own particles (runs on several
 ranks), those whose centre entered another rank's box migrate to it
-(ARCHITECTURE.md, "Particles"; ``pmpm.ownership`` holds the boxes and the exchanges).
+(ARCHITECTURE.md, "Particles"; ``pmpm.ownership`` holds the boxes, ``pmpm.packed`` moves the rows).
 """
 from __future__ import annotations
 
 from dataclasses import replace
 
 import numpy as np
+from numba import njit
 
 from .collisions import ContactMemory
 from .errors import NumericalError
-from .ownership import (IMBALANCE, PARTICLE_FIELDS, bisect, exchange_groups, particle_rows, particle_work,
-                        rank_work)
+from .ownership import IMBALANCE, bisect, particle_work, rank_work
+from .packed import exchanged, merged, packed
 from .particles import ParticleState
 from .state import RunState
 
@@ -35,11 +36,11 @@ def remove_outside(exits, state: RunState, start: np.ndarray) -> RunState:
     if not outside.any():
         return state
     return replace(state, particles=state.particles.without(outside), removed=state.removed + int(outside.sum()),
-                   removed_through=merged(state.removed_through, through), hydro_force=state.hydro_force[~outside],
+                   removed_through=counts_added(state.removed_through, through), hydro_force=state.hydro_force[~outside],
                    hydro_torque=state.hydro_torque[~outside])
 
 
-def merged(totals: dict, more: dict) -> dict:
+def counts_added(totals: dict, more: dict) -> dict:
     """Counts by name: ``totals`` with ``more`` added."""
     totals = dict(totals)
     for name, n in more.items():
@@ -50,10 +51,19 @@ def merged(totals: dict, more: dict) -> dict:
 def first_not_finite(particles: ParticleState, among: np.ndarray | None = None) -> int:
     """The id of the first particle (``among``: of those where true) whose position or velocity is not
     finite, or −1."""
-    bad = ~np.isfinite(particles.x).all(axis=1) | ~np.isfinite(particles.v).all(axis=1)
-    if among is not None:
-        bad &= among
-    return int(particles.id[np.argmax(bad)]) if bad.any() else -1
+    among = np.ones(len(particles), bool) if among is None else among
+    return int(_first_not_finite(particles.id, particles.x, particles.v, among))
+
+
+@njit(cache=True)
+def _first_not_finite(pid, x, v, among):
+    """``first_not_finite``, compiled (every step asks it of every particle)."""
+    for i in range(len(pid)):
+        if among[i]:
+            for d in range(3):
+                if not (np.isfinite(x[i, d]) and np.isfinite(v[i, d])):
+                    return pid[i]
+    return -1
 
 
 def not_finite(pid: int, step: int, time: float) -> NumericalError:
@@ -80,20 +90,24 @@ def migrate_particles(comm, exits, state: RunState, start: np.ndarray, dt: float
     that leave and arrive are moved (a step's migration moves a few of thousands)."""
     partition = state.partition
     particles = state.particles
-    outside, through = leaving(exits, state, start)
+    names = exits.names if exits is not None else ()
+    crossed = exits.crossed(start, particles.x) if names and len(particles) else np.full(len(particles), -1)
+    outside = crossed >= 0
     owner = partition.owner_of(particles.x)
     owner[outside] = -1
     to_others = int((owner >= 0).sum() - (owner == comm.rank).sum())
     remembered = state.contacts if state.contacts is not None else ContactMemory.empty()
     work = rank_work(len(particles) - int(outside.sum()), remembered.second_id)
-    gathered = comm.allgather(((work, to_others, int(outside.sum()), first_not_finite(particles, ~outside)), through))
-    counts = np.array([rank_counts for rank_counts, _ in gathered])
+    # per rank: its work, the particles it sends, removes, the first not finite, those out through each boundary
+    mine = np.array([work, to_others, outside.sum(), first_not_finite(particles, ~outside),
+                     *np.bincount(crossed[outside], minlength=len(names))], float)
+    counts = np.empty((comm.size, len(mine)))
+    comm.Allgather(mine, counts)
     if (counts[:, 3] >= 0).any():
         raise not_finite(int(counts[np.argmax(counts[:, 3] >= 0), 3]), state.step + 1, state.time + dt)
-    removed_through = state.removed_through
-    for _, rank_through in gathered:
-        removed_through = merged(removed_through, rank_through)
-    state = replace(state, removed=state.removed + int(counts[:, 2].sum()), removed_through=removed_through)
+    through = {name: int(n) for name, n in zip(names, counts[:, 4:].sum(axis=0)) if n > 0}
+    state = replace(state, removed=state.removed + int(counts[:, 2].sum()),
+                    removed_through=counts_added(state.removed_through, through))
     if rebalance and counts[:, 0].max() > IMBALANCE * max(counts[:, 0].mean(), 1.0) and counts[:, 0].max() >= 64:
         each = particle_work(particles.id, remembered.first_id, remembered.second_id)
         partition = bisect(comm, particles.x[~outside], work=each[~outside])
@@ -105,26 +119,42 @@ def migrate_particles(comm, exits, state: RunState, start: np.ndarray, dt: float
         return replace(state, particles=particles.without(outside), hydro_force=state.hydro_force[~outside],
                        hydro_torque=state.hydro_torque[~outside])
     gone = np.flatnonzero(owner != comm.rank)     # removed (owner −1), or to another rank
-    rows = {**particle_rows(particles), "hydro_force": state.hydro_force, "hydro_torque": state.hydro_torque}
-    groups = [(owner[gone], {name: values.take(gone, axis=0) for name, values in rows.items()})]
+    going = gone[owner[gone] >= 0]
+    going = going[np.argsort(owner[going], kind="stable")]
+    hydro = (state.hydro_force, state.hydro_torque)
+    groups = [(owner[going], packed(particles, going, *hydro))]
     contacts = state.contacts
     if contacts is not None:   # the memory goes where the contact's lower-id particle goes
-        going = particles.id[gone]
-        begin = np.searchsorted(contacts.first_id, going, "left")   # each one's contacts: a range of rows
-        count = np.searchsorted(contacts.first_id, going, "right") - begin
+        begin = np.searchsorted(contacts.first_id, particles.id[gone], "left")   # each one's contacts: a range
+        count = np.searchsorted(contacts.first_id, particles.id[gone], "right") - begin
         follows = np.repeat(begin - np.cumsum(count) + count, count) + np.arange(count.sum())
-        memory = contacts.to_arrays()
-        groups.append((np.repeat(owner[gone], count),
-                       {name: values.take(follows, axis=0) for name, values in memory.items()}))
-    arrived, *arrived_contacts = exchange_groups(comm, groups)   # (rows bound for −1 go nowhere)
-    rows = spliced(rows, particles.id, gone, arrived, arrived["id"])
-    state = replace(state, particles=ParticleState(**{name: rows[name] for name in PARTICLE_FIELDS}),
-                    hydro_force=rows["hydro_force"], hydro_torque=rows["hydro_torque"])
-    if contacts is not None and (len(follows) or len(arrived_contacts[0]["first_id"])):
-        new = arrived_contacts[0]
-        memory = spliced(memory, contacts.keys, follows, new, ContactMemory.key_of(new["first_id"], new["second_id"]))
+        bound = np.repeat(owner[gone], count)
+        sent = np.argsort(np.where(bound >= 0, bound, comm.size), kind="stable")[:int((bound >= 0).sum())]
+        groups.append((bound[sent], memory_rows(contacts, follows[sent])))
+    (arrived, _), *arrived_contacts = exchanged(comm, *groups)
+    keep = np.ones(len(particles), bool)
+    keep[gone] = False
+    particles, _, _, (force, torque) = merged(particles, arrived, keep, hydro)
+    state = replace(state, particles=particles, hydro_force=force, hydro_torque=torque)
+    if contacts is not None and (len(follows) or len(arrived_contacts[0][0])):
+        new = memory_arrays(arrived_contacts[0][0])
+        memory = spliced(contacts.to_arrays(), contacts.keys, follows, new,
+                         ContactMemory.key_of(new["first_id"], new["second_id"]))
         state = replace(state, contacts=ContactMemory.from_arrays(memory))
     return state
+
+
+def memory_rows(contacts: ContactMemory, rows: np.ndarray) -> np.ndarray:
+    """(len(rows), 6) the remembered contacts' ``rows`` as float64: first and second id, the normal
+    impulse, the tangential impulse (ids exact below 2^53)."""
+    return np.column_stack([contacts.first_id[rows], contacts.second_id[rows], contacts.normal_impulse[rows],
+                            contacts.tangential_impulse[rows]]).astype(float)
+
+
+def memory_arrays(block: np.ndarray) -> dict:
+    """The inverse of ``memory_rows``: ``ContactMemory``'s fields by name."""
+    return {"first_id": block[:, 0].astype(np.int64), "second_id": block[:, 1].astype(np.int64),
+            "normal_impulse": block[:, 2].copy(), "tangential_impulse": block[:, 3:6].copy()}
 
 
 def spliced(rows: dict, keys: np.ndarray, drop: np.ndarray, added: dict, added_keys: np.ndarray) -> dict:

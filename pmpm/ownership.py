@@ -26,7 +26,6 @@ from numba import njit
 from .arrays import summed
 from .particles import ParticleState
 
-MAX_HOLDERS = 16       # the most ranks that may hold one particle (its owner and its ghosts')
 IMBALANCE = 1.02        # the boxes are bisected again when a rank's work is this × the mean (``particle_work``)
 CONTACT_WORK, WALL_CONTACT_WORK = 1.0, 3.0   # a remembered contact's work, in particles' (docs/collisions.md)
 BINS, ROUNDS = 64, 3    # a cut is placed by ROUNDS histograms of BINS bins (to 1/64³ of the particles' extent)
@@ -190,40 +189,8 @@ def rank_work(particles: int, second_id: np.ndarray) -> float:
 
 
 # ----------------------------------------------------------------------------------------------
-# Moving rows between ranks
+# Colours, and rows for output (``pmpm.packed`` moves rows between ranks)
 # ----------------------------------------------------------------------------------------------
-def exchange_rows(comm, destination: np.ndarray, arrays: dict) -> dict:
-    """Collective. Send row i of every array to rank ``destination[i]`` (−1: nowhere); returns the
-    rows received from all ranks, in rank order, as a dict of arrays like ``arrays``."""
-    return exchange_groups(comm, [(destination, arrays)])[0]
-
-
-def exchange_groups(comm, groups: list) -> list[dict]:
-    """Collective. ``exchange_rows`` of several groups (destination, arrays) of rows in one
-    exchange; rows whose destination is this rank stay, without a message, ahead of those received.
-    Only the rows that leave are sorted by rank (a step's migration moves a few of thousands)."""
-    outgoing = [[None] * len(groups) for _ in range(comm.size)]
-    staying = []
-    for g, (destination, arrays) in enumerate(groups):
-        here = destination == comm.rank
-        kept = np.flatnonzero(here)   # (take: a third of the time of a boolean mask on rows)
-        staying.append(arrays if len(kept) == len(here) else
-                       {name: values.take(kept, axis=0) for name, values in arrays.items()})
-        away = np.flatnonzero(~here & (destination >= 0))
-        order = away[np.argsort(destination[away], kind="stable")]
-        edges = np.searchsorted(destination[order], np.arange(comm.size + 1))
-        for r in np.flatnonzero(edges[1:] > edges[:-1]):
-            rows = order[edges[r]:edges[r + 1]]
-            outgoing[r][g] = {name: values.take(rows, axis=0) for name, values in arrays.items()}
-    outgoing = [None if all(part is None for part in parts) else parts for parts in outgoing]
-    incoming = [parts for parts in comm.alltoall(outgoing) if parts is not None]
-    result = []
-    for g, (_, arrays) in enumerate(groups):
-        parts = [staying[g]] + [parts[g] for parts in incoming if parts[g] is not None]
-        result.append({name: np.concatenate([part[name] for part in parts]) for name in arrays})
-    return result
-
-
 def greedy_colours(neighbours: list) -> np.ndarray:
     """(ranks,) a colour per rank, greedy in rank order, apart from every rank it lists as a
     neighbour or that lists it (``neighbours``: per rank, the ranks it holds a particle with)."""

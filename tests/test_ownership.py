@@ -120,13 +120,11 @@ def test_spliced_rows_are_the_sorted_rows_less_those_dropped_plus_those_added():
             np.testing.assert_array_equal(result[name], every[name][order])
 
 
-def test_block_sweep_set_up_and_the_holders_pairs_against_plain_numpy():
+def test_block_sweep_set_up_against_plain_numpy():
     """The compiled set-up of the block sweeps (``impulses.split_at_shared``, ``watched_bodies``)
-    and the halo's pairs of holders (``halo._held_with``) give what the numpy they replaced gave:
-    contacts among 40 bodies and a world row (one of infinite mass, walls with arm 0), some
-    bodies shared; holders rows ending in −1."""
+    gives what the numpy it replaced gave: contacts among 40 bodies and a world row (one of
+    infinite mass, walls with arm 0), some bodies shared."""
     from pmpm.collisions.impulses import split_at_shared, watched_bodies
-    from pmpm.halo import _held_with
     rng = np.random.default_rng(5)
     n, m = 40, 120
     first = rng.integers(0, n, m)
@@ -157,12 +155,6 @@ def test_block_sweep_set_up_and_the_holders_pairs_against_plain_numpy():
     plain_arm[b], plain_arm[a] = r_second[rows], r_first[rows]
     np.testing.assert_array_equal(arm, plain_arm)
     np.testing.assert_array_equal(watched, np.flatnonzero(owned & (inv_m > 0) & (plain_arm > 0)))
-    holders = np.full((6, 4), -1, np.int32)
-    holders[:, 0], holders[:3, 1], holders[1, 2] = 1, 0, 2
-    local_row, other = _held_with(np.arange(10, 16), holders, 1)
-    keep = (holders >= 0) & (holders != 1)
-    np.testing.assert_array_equal(local_row, np.repeat(np.arange(10, 16), 4)[keep.ravel()])
-    np.testing.assert_array_equal(other, holders.ravel()[keep.ravel()])
 
 
 @pytest.mark.mpi
@@ -260,7 +252,8 @@ def test_a_block_solve_across_the_cut_converges_as_one_rank(comm):
 @pytest.mark.mpi
 def test_particles_in_one_half_leave_ghosts_near_the_cut_only(comm):
     """A bed of 80 balls in x < 0 (rank 0's half): rank 1 owns none, and its ghosts are the balls
-    within contact range of the cut (2 r + the search's reach), not the others."""
+    within contact range of the cut (2 r + the search's reach), not the others; both ranks hold
+    the same particles together (the ghosts' holders found by their receiver), in id order."""
     r = 0.01
     grid = np.stack(np.meshgrid(np.arange(8), np.arange(5), np.arange(2), indexing="ij"), -1).reshape(-1, 3)
     x = (grid * 2.05 * r + [-0.155, 0.0, r]).astype(float)
@@ -276,6 +269,10 @@ def test_particles_in_one_half_leave_ghosts_near_the_cut_only(comm):
         assert counts[1] == (0, expected) and expected == 10
         if comm.rank == 1:
             assert ghosts[:, 0].min() > -(2 * r + 1e-3)
+        together = comm.allgather(local.id[halo.shared_rows])
+        assert len(together[0]) == expected and np.array_equal(together[0], together[1])
+        assert list(halo.shared_at) == [1 - comm.rank]
+        assert np.array_equal(halo.shared_at[1 - comm.rank], np.arange(expected))
 
 
 @pytest.mark.mpi

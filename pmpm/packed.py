@@ -1,0 +1,134 @@
+"""Particle rows as one block of float64 columns: what moves between ranks (ghosts, migration).
+
+A ``ParticleState``'s fields are a dozen arrays; moving some rows of each to another rank took a
+take, a message part and a join per field. Here the rows are packed side by side in one compiled
+pass, sent as one buffer per rank pair, and merged into the receiver's rows (sorted by id) in one
+compiled pass. Ids, motion codes and deposition flags travel as float64 (ids exact below 2^53).
+"""
+from __future__ import annotations
+
+import numpy as np
+from mpi4py import MPI
+from numba import njit
+
+from .particles import ParticleState
+
+ID, X, V, OMEGA, RADIUS, DENSITY, MOTION, DEPOSITED = 0, 1, 4, 7, 10, 11, 12, 13
+FIELD_COLUMNS = 14   # the columns of a ParticleState's row; extra columns follow
+
+
+def packed(particles: ParticleState, rows: np.ndarray, *extra: np.ndarray) -> np.ndarray:
+    """(len(rows), FIELD_COLUMNS + extra columns) the particles' ``rows`` (indices), with the same
+    rows of each of ``extra`` (float64, (n,) or (n, k)) after their fields."""
+    columns = [values[:, None] if values.ndim == 1 else values for values in map(np.asarray, extra)]
+    widths = np.array([c.shape[1] for c in columns], np.int64)
+    out = np.empty((len(rows), FIELD_COLUMNS + int(widths.sum())))
+    _pack(np.asarray(rows, np.int64), particles.id, particles.x, particles.v, particles.omega, particles.radius,
+          particles.density, particles.motion, particles.deposited, out)
+    column = FIELD_COLUMNS
+    for values in columns:
+        out[:, column:column + values.shape[1]] = values[rows]
+        column += values.shape[1]
+    return out
+
+
+def unpacked(block: np.ndarray) -> ParticleState:
+    """The ``ParticleState`` of a block's rows, in its order (the inverse of ``packed``'s fields)."""
+    return ParticleState(block[:, ID].astype(np.int64), block[:, X:X + 3].copy(), block[:, V:V + 3].copy(),
+                         block[:, OMEGA:OMEGA + 3].copy(), block[:, RADIUS].copy(), block[:, DENSITY].copy(),
+                         block[:, MOTION].astype(np.int8), block[:, DEPOSITED] > 0)
+
+
+def merged(particles: ParticleState, block: np.ndarray, keep: np.ndarray | None = None,
+           extra: tuple = ()) -> tuple:
+    """``particles`` (sorted by id; ``keep``: those where true) and the rows of ``block`` (other
+    ids, any order) in one state sorted by id; with the row in it of each of ``particles`` (−1: not
+    kept) and of each of ``block``'s rows; and the arrays ``extra`` ((n, 3) each: a row per
+    particle, the block's rows holding theirs after their fields, in order) merged alike."""
+    order = np.argsort(block[:, ID], kind="stable")
+    keep = np.ones(len(particles), bool) if keep is None else keep
+    n = int(keep.sum()) + len(block)
+    result = ParticleState(np.empty(n, np.int64), np.empty((n, 3)), np.empty((n, 3)), np.empty((n, 3)),
+                           np.empty(n), np.empty(n), np.empty(n, np.int8), np.empty(n, bool))
+    where_own, where_block = np.full(len(particles), -1, np.int64), np.empty(len(block), np.int64)
+    merged_extra = tuple(np.empty((n, 3)) for _ in extra)
+    _merge(particles.id, particles.x, particles.v, particles.omega, particles.radius, particles.density,
+           particles.motion, particles.deposited, keep, tuple(extra) or (np.empty((0, 3)),), block, order,
+           result.id, result.x, result.v, result.omega, result.radius, result.density, result.motion,
+           result.deposited, merged_extra or (np.empty((0, 3)),), where_own, where_block, len(extra))
+    return result, where_own, where_block, merged_extra
+
+
+def exchanged(comm, *groups: tuple) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Collective. Per group (destination, block): each row of ``block`` to rank ``destination``
+    (ascending: the rows grouped by rank); returns per group the rows received, in rank order,
+    and where each rank's begin ((size + 1,) offsets). One exchange of counts for all groups, one
+    of rows per group; a group's blocks have the same width on every rank."""
+    edges = [np.searchsorted(destination, np.arange(comm.size + 1)) for destination, _ in groups]
+    counts = np.stack([np.diff(e) for e in edges], axis=1).astype(np.int64)    # (ranks, groups)
+    arriving = np.empty_like(counts)
+    comm.Alltoall(counts, arriving)
+    result = []
+    for g, (_, block) in enumerate(groups):
+        width = block.shape[1]
+        offsets = np.concatenate([[0], np.cumsum(arriving[:, g])])
+        received = np.empty((int(offsets[-1]), width))
+        comm.Alltoallv([np.ascontiguousarray(block), counts[:, g] * width, edges[g][:-1] * width, MPI.DOUBLE],
+                       [received, arriving[:, g] * width, offsets[:-1] * width, MPI.DOUBLE])
+        result.append((received, offsets))
+    return result
+
+
+@njit(cache=True)
+def _pack(rows, pid, x, v, omega, radius, density, motion, deposited, out):
+    for k in range(len(rows)):
+        i = rows[k]
+        out[k, ID] = pid[i]
+        for d in range(3):
+            out[k, X + d] = x[i, d]
+            out[k, V + d] = v[i, d]
+            out[k, OMEGA + d] = omega[i, d]
+        out[k, RADIUS] = radius[i]
+        out[k, DENSITY] = density[i]
+        out[k, MOTION] = motion[i]
+        out[k, DEPOSITED] = 1.0 if deposited[i] else 0.0
+
+
+@njit(cache=True)
+def _merge(pid, x, v, omega, radius, density, motion, deposited, keep, extra, block, order,
+           out_id, out_x, out_v, out_omega, out_radius, out_density, out_motion, out_deposited, out_extra,
+           where_own, where_block, n_extra):
+    """The two sorted sequences (the rows where ``keep``, and the block's rows in ``order``) merged
+    by id into the out_ arrays; where_own / where_block take each one's row there. ``extra``,
+    ``out_extra``: the first ``n_extra`` are (n, 3) arrays merged alike."""
+    n, m = len(pid), len(order)
+    i, j, k = 0, 0, 0
+    while i < n or j < m:
+        if i < n and not keep[i]:
+            i += 1
+            continue
+        if j == m or (i < n and pid[i] < np.int64(block[order[j], ID])):
+            out_id[k] = pid[i]
+            for d in range(3):
+                out_x[k, d], out_v[k, d], out_omega[k, d] = x[i, d], v[i, d], omega[i, d]
+            out_radius[k], out_density[k] = radius[i], density[i]
+            out_motion[k], out_deposited[k] = motion[i], deposited[i]
+            for e in range(n_extra):
+                for d in range(3):
+                    out_extra[e][k, d] = extra[e][i, d]
+            where_own[i] = k
+            i += 1
+        else:
+            a = order[j]
+            out_id[k] = np.int64(block[a, ID])
+            for d in range(3):
+                out_x[k, d], out_v[k, d] = block[a, X + d], block[a, V + d]
+                out_omega[k, d] = block[a, OMEGA + d]
+            out_radius[k], out_density[k] = block[a, RADIUS], block[a, DENSITY]
+            out_motion[k], out_deposited[k] = np.int8(block[a, MOTION]), block[a, DEPOSITED] > 0
+            for e in range(n_extra):
+                for d in range(3):
+                    out_extra[e][k, d] = block[a, FIELD_COLUMNS + 3 * e + d]
+            where_block[a] = k
+            j += 1
+        k += 1

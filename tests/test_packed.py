@@ -1,0 +1,59 @@
+"""Particle rows packed into one block, merged by id, and exchanged between ranks (``pmpm.packed``)."""
+import numpy as np
+import pytest
+
+from pmpm.packed import exchanged, merged, packed, unpacked
+from pmpm.particles import ParticleState
+
+
+def random_particles(rng, ids) -> ParticleState:
+    n = len(ids)
+    return ParticleState(np.asarray(ids, np.int64), rng.random((n, 3)), rng.random((n, 3)), rng.random((n, 3)),
+                         rng.random(n), rng.random(n), rng.integers(0, 3, n).astype(np.int8), rng.random(n) < 0.5)
+
+
+def test_packed_rows_merge_by_id_as_a_sort_would():
+    """200 particles (even ids, some dropped) and 9 arrived rows (odd ids and ids past the last, any
+    order) with two (n, 3) arrays each: the merged state, its arrays and the rows' places are those
+    of concatenating and sorting; a packed row unpacks to the particle's fields, bit for bit (ids
+    beyond 2^31 too)."""
+    rng = np.random.default_rng(3)
+    own = random_particles(rng, 2 * np.arange(200) + 2 ** 40)
+    force, torque = rng.random((200, 3)), rng.random((200, 3))
+    arriving = random_particles(rng, np.array([1, 401, 7, 999, 3, 55, 1001, 397, 2001]) + 2 ** 40)
+    extra_force, extra_torque = rng.random((9, 3)), rng.random((9, 3))
+    block = packed(arriving, np.arange(9), extra_force, extra_torque)
+    keep = rng.random(200) > 0.1
+    state, where_own, where_block, (f, t) = merged(own, block, keep, (force, torque))
+    ids = np.concatenate([own.id[keep], arriving.id])
+    order = np.argsort(ids)
+    np.testing.assert_array_equal(state.id, ids[order])
+    for name in ("x", "v", "omega", "radius", "density", "motion", "deposited"):
+        joined = np.concatenate([getattr(own, name)[keep], getattr(arriving, name)])
+        np.testing.assert_array_equal(getattr(state, name), joined[order])
+        assert getattr(state, name).dtype == getattr(own, name).dtype
+    np.testing.assert_array_equal(f, np.concatenate([force[keep], extra_force])[order])
+    np.testing.assert_array_equal(t, np.concatenate([torque[keep], extra_torque])[order])
+    np.testing.assert_array_equal(state.id[where_own[keep]], own.id[keep])
+    assert (where_own[~keep] == -1).all()
+    np.testing.assert_array_equal(state.id[where_block], arriving.id)
+    back = unpacked(packed(own, np.array([5, 0, 199])))
+    for name in ("id", "x", "v", "omega", "radius", "density", "motion", "deposited"):
+        np.testing.assert_array_equal(getattr(back, name), getattr(own, name)[[5, 0, 199]])
+
+
+@pytest.mark.mpi
+def test_rows_reach_the_ranks_they_are_sent_to(comm):
+    """Each rank sends rows to every rank, itself included (r + 1 rows to rank r, two groups of
+    different widths in one exchange of counts): each receives them in rank order, with offsets."""
+    size, rank = comm.size, comm.rank
+    destination = np.repeat(np.arange(size), np.arange(1, size + 1))
+    wide = np.stack([np.full(len(destination), rank), destination, np.arange(len(destination))], axis=1).astype(float)
+    narrow = wide[:, :1] + 0.5
+    (got, offsets), (got_narrow, narrow_offsets) = exchanged(comm, (destination, wide), (destination, narrow))
+    expected_from = np.repeat(np.arange(size), rank + 1)
+    np.testing.assert_array_equal(offsets, np.arange(size + 1) * (rank + 1))
+    np.testing.assert_array_equal(narrow_offsets, offsets)
+    np.testing.assert_array_equal(got[:, 0], expected_from)
+    assert (got[:, 1] == rank).all()
+    np.testing.assert_array_equal(got_narrow[:, 0], expected_from + 0.5)
