@@ -36,8 +36,8 @@ def remove_outside(exits, state: RunState, start: np.ndarray) -> RunState:
     if not outside.any():
         return state
     return replace(state, particles=state.particles.without(outside), removed=state.removed + int(outside.sum()),
-                   removed_through=counts_added(state.removed_through, through), hydro_force=state.hydro_force[~outside],
-                   hydro_torque=state.hydro_torque[~outside])
+                   removed_through=counts_added(state.removed_through, through),
+                   hydro_force=state.hydro_force[~outside], hydro_torque=state.hydro_torque[~outside])
 
 
 def counts_added(totals: dict, more: dict) -> dict:
@@ -80,14 +80,14 @@ def check_finite(particles: ParticleState, step: int, time: float) -> None:
 
 def migrate_particles(comm, exits, state: RunState, start: np.ndarray, dt: float, rebalance: bool = True) -> RunState:
     """Collective. Where ranks own particles, stage 8 in one gather of counts and (when a particle
-    changed rank) one exchange: the particles that left the domain are removed (``leaving``, the
-    counts summed over ranks), the ones whose centre entered another rank's box go to it, with
-    their last hydrodynamic force and the contact memory of the contacts whose lower-id particle
-    they are; when a rank's work (``ownership.particle_work``: its particles and the remembered
+    changed rank) one exchange: the particles whose path crossed the domain's boundary are removed
+    (as ``leaving``; the counts summed over ranks), the ones whose centre entered another rank's
+    box go to it, with their last hydrodynamic force and the contact memory of the contacts whose
+    lower-id particle they are; when a rank's work (``ownership.particle_work``: its particles and the remembered
     contacts they solve) is more than ``ownership.IMBALANCE`` × the mean, the boxes are bisected
     again by work first (with ``rebalance``; in a flow the boxes are the mesh's, and stay). A
-    particle whose state is not finite stops the run on every rank (NumericalError). Only the rows
-    that leave and arrive are moved (a step's migration moves a few of thousands)."""
+    particle whose state is not finite stops the run on every rank (NumericalError). The rows that
+    leave go packed in one block (``pmpm.packed``), and those that arrive are merged in by id."""
     partition = state.partition
     particles = state.particles
     names = exits.names if exits is not None else ()

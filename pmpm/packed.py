@@ -21,8 +21,7 @@ def packed(particles: ParticleState, rows: np.ndarray, *extra: np.ndarray) -> np
     """(len(rows), FIELD_COLUMNS + extra columns) the particles' ``rows`` (indices), with the same
     rows of each of ``extra`` (float64, (n,) or (n, k)) after their fields."""
     columns = [values[:, None] if values.ndim == 1 else values for values in map(np.asarray, extra)]
-    widths = np.array([c.shape[1] for c in columns], np.int64)
-    out = np.empty((len(rows), FIELD_COLUMNS + int(widths.sum())))
+    out = np.empty((len(rows), FIELD_COLUMNS + sum(values.shape[1] for values in columns)))
     _pack(np.asarray(rows, np.int64), particles.id, particles.x, particles.v, particles.omega, particles.radius,
           particles.density, particles.motion, particles.deposited, out)
     column = FIELD_COLUMNS
@@ -30,13 +29,6 @@ def packed(particles: ParticleState, rows: np.ndarray, *extra: np.ndarray) -> np
         out[:, column:column + values.shape[1]] = values[rows]
         column += values.shape[1]
     return out
-
-
-def unpacked(block: np.ndarray) -> ParticleState:
-    """The ``ParticleState`` of a block's rows, in its order (the inverse of ``packed``'s fields)."""
-    return ParticleState(block[:, ID].astype(np.int64), block[:, X:X + 3].copy(), block[:, V:V + 3].copy(),
-                         block[:, OMEGA:OMEGA + 3].copy(), block[:, RADIUS].copy(), block[:, DENSITY].copy(),
-                         block[:, MOTION].astype(np.int8), block[:, DEPOSITED] > 0)
 
 
 def merged(particles: ParticleState, block: np.ndarray, keep: np.ndarray | None = None,
@@ -52,6 +44,7 @@ def merged(particles: ParticleState, block: np.ndarray, keep: np.ndarray | None 
                            np.empty(n), np.empty(n), np.empty(n, np.int8), np.empty(n, bool))
     where_own, where_block = np.full(len(particles), -1, np.int64), np.empty(len(block), np.int64)
     merged_extra = tuple(np.empty((n, 3)) for _ in extra)
+    # (the kernel takes a tuple of at least one array: an empty one stands in where there are none)
     _merge(particles.id, particles.x, particles.v, particles.omega, particles.radius, particles.density,
            particles.motion, particles.deposited, keep, tuple(extra) or (np.empty((0, 3)),), block, order,
            result.id, result.x, result.v, result.omega, result.radius, result.density, result.motion,
