@@ -15,8 +15,8 @@ def random_particles(rng, ids) -> ParticleState:
 def test_packed_rows_merge_by_id_as_a_sort_would():
     """200 particles (even ids, some dropped) and 9 arrived rows (odd ids and ids past the last, any
     order) with two (n, 3) arrays each: the merged state, its arrays and the rows' places are those
-    of concatenating and sorting; a packed row unpacks to the particle's fields, bit for bit (ids
-    beyond 2^31 too)."""
+    of concatenating and sorting; rows packed and merged into no particles are the particles' rows,
+    bit for bit (ids beyond 2^31 too)."""
     rng = np.random.default_rng(3)
     own = random_particles(rng, 2 * np.arange(200) + 2 ** 40)
     force, torque = rng.random((200, 3)), rng.random((200, 3))
