@@ -227,7 +227,6 @@ def big_bed_owned(n: int) -> None:
         memory, walls = result.memory, result.walls
         owner = partition.owner_of(state.x)   # migration
         going = np.flatnonzero(owner != comm.rank)
-        going = going[np.argsort(owner[going], kind="stable")]
         [(moved, _)] = exchanged(comm, (owner[going], packed(state, going)))
         state = merged(state, moved, owner == comm.rank)[0]
         if step >= 20:

@@ -17,24 +17,24 @@ from .particles import ParticleState
 from .state import RunState
 
 
-def leaving(exits, state: RunState, start: np.ndarray) -> tuple[np.ndarray, dict]:
-    """Local. (n,) bool, the particles whose centre's path from ``start`` (n, 3), the step's first
-    positions, rows as the particles', crossed the domain's boundary (``exits``:
-    ``pmpm.exits.BoundaryFaces``, or None where no particle can be), and how many crossed each
-    boundary (name → count)."""
+def crossings(exits, state: RunState, start: np.ndarray) -> np.ndarray:
+    """Local. (n,) int, the boundary (an index into ``exits.names``) that each particle's centre's
+    path from ``start`` (n, 3), the step's first positions, rows as the particles', crossed
+    outwards, −1 for none (``exits``: ``pmpm.exits.BoundaryFaces``, or None where no particle can
+    leave)."""
     if exits is None or len(state.particles) == 0:
-        return np.zeros(len(state.particles), bool), {}
-    crossed = exits.crossed(start, state.particles.x)
-    outside = crossed >= 0
-    return outside, exits.count(crossed[outside])
+        return np.full(len(state.particles), -1)
+    return exits.crossed(start, state.particles.x)
 
 
 def remove_outside(exits, state: RunState, start: np.ndarray) -> RunState:
     """Local. Where every rank holds every particle (1 rank): the particles that left the domain
-    (``leaving``) are removed, counted in ``removed`` and in ``removed_through``."""
-    outside, through = leaving(exits, state, start)
+    (``crossings``) are removed, counted in ``removed`` and in ``removed_through``."""
+    crossed = crossings(exits, state, start)
+    outside = crossed >= 0
     if not outside.any():
         return state
+    through = exits.count(crossed[outside])
     return replace(state, particles=state.particles.without(outside), removed=state.removed + int(outside.sum()),
                    removed_through=counts_added(state.removed_through, through),
                    hydro_force=state.hydro_force[~outside], hydro_torque=state.hydro_torque[~outside])
@@ -81,7 +81,7 @@ def check_finite(particles: ParticleState, step: int, time: float) -> None:
 def migrate_particles(comm, exits, state: RunState, start: np.ndarray, dt: float, rebalance: bool = True) -> RunState:
     """Collective. Where ranks own particles, stage 8 in one gather of counts and (when a particle
     changed rank) one exchange: the particles whose path crossed the domain's boundary are removed
-    (as ``leaving``; the counts summed over ranks), the ones whose centre entered another rank's
+    (``crossings``; the counts summed over ranks), the ones whose centre entered another rank's
     box go to it, with their last hydrodynamic force and the contact memory of the contacts whose
     lower-id particle they are; when a rank's work (``ownership.particle_work``: its particles and the remembered
     contacts they solve) is more than ``ownership.IMBALANCE`` × the mean, the boxes are bisected
@@ -91,7 +91,7 @@ def migrate_particles(comm, exits, state: RunState, start: np.ndarray, dt: float
     partition = state.partition
     particles = state.particles
     names = exits.names if exits is not None else ()
-    crossed = exits.crossed(start, particles.x) if names and len(particles) else np.full(len(particles), -1)
+    crossed = crossings(exits, state, start)
     outside = crossed >= 0
     owner = partition.owner_of(particles.x)
     owner[outside] = -1
@@ -119,18 +119,14 @@ def migrate_particles(comm, exits, state: RunState, start: np.ndarray, dt: float
         return replace(state, particles=particles.without(outside), hydro_force=state.hydro_force[~outside],
                        hydro_torque=state.hydro_torque[~outside])
     gone = np.flatnonzero(owner != comm.rank)     # removed (owner −1), or to another rank
-    going = gone[owner[gone] >= 0]
-    going = going[np.argsort(owner[going], kind="stable")]
     hydro = (state.hydro_force, state.hydro_torque)
-    groups = [(owner[going], packed(particles, going, *hydro))]
+    groups = [(owner[gone], packed(particles, gone, *hydro))]
     contacts = state.contacts
     if contacts is not None:   # the memory goes where the contact's lower-id particle goes
         begin = np.searchsorted(contacts.first_id, particles.id[gone], "left")   # each one's contacts: a range
         count = np.searchsorted(contacts.first_id, particles.id[gone], "right") - begin
         follows = np.repeat(begin - np.cumsum(count) + count, count) + np.arange(count.sum())
-        bound = np.repeat(owner[gone], count)
-        sent = np.argsort(np.where(bound >= 0, bound, comm.size), kind="stable")[:int((bound >= 0).sum())]
-        groups.append((bound[sent], memory_rows(contacts, follows[sent])))
+        groups.append((np.repeat(owner[gone], count), memory_rows(contacts, follows)))
     (arrived, _), *arrived_contacts = exchanged(comm, *groups)
     keep = np.ones(len(particles), bool)
     keep[gone] = False

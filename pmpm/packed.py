@@ -54,19 +54,24 @@ def merged(particles: ParticleState, block: np.ndarray, keep: np.ndarray | None 
 
 def exchanged(comm, *groups: tuple) -> list[tuple[np.ndarray, np.ndarray]]:
     """Collective. Per group (destination, block): each row of ``block`` to rank ``destination``
-    (ascending: the rows grouped by rank); returns per group the rows received, in rank order,
-    and where each rank's begin ((size + 1,) offsets). One exchange of counts for all groups, one
-    of rows per group; a group's blocks have the same width on every rank."""
-    edges = [np.searchsorted(destination, np.arange(comm.size + 1)) for destination, _ in groups]
+    (−1: nowhere); returns per group the rows received, in rank order (each rank's in the order
+    it sent them), and where each rank's begin ((size + 1,) offsets). One exchange of counts for
+    all groups, one of rows per group; a group's blocks have the same width on every rank."""
+    sent, edges = [], []
+    for destination, block in groups:
+        order = np.argsort(destination, kind="stable")   # (−1 first, then by rank)
+        bounds = np.searchsorted(destination[order], np.arange(comm.size + 1))   # each rank's start, the end
+        sent.append(np.ascontiguousarray(block[order[bounds[0]:]]))
+        edges.append(bounds - bounds[0])
     counts = np.stack([np.diff(e) for e in edges], axis=1).astype(np.int64)    # (ranks, groups)
     arriving = np.empty_like(counts)
     comm.Alltoall(counts, arriving)
     result = []
-    for g, (_, block) in enumerate(groups):
+    for g, block in enumerate(sent):
         width = block.shape[1]
         offsets = np.concatenate([[0], np.cumsum(arriving[:, g])])
         received = np.empty((int(offsets[-1]), width))
-        comm.Alltoallv([np.ascontiguousarray(block), counts[:, g] * width, edges[g][:-1] * width, MPI.DOUBLE],
+        comm.Alltoallv([block, counts[:, g] * width, edges[g][:-1] * width, MPI.DOUBLE],
                        [received, arriving[:, g] * width, offsets[:-1] * width, MPI.DOUBLE])
         result.append((received, offsets))
     return result

@@ -44,10 +44,12 @@ def test_packed_rows_merge_by_id_as_a_sort_would():
 
 @pytest.mark.mpi
 def test_rows_reach_the_ranks_they_are_sent_to(comm):
-    """Each rank sends rows to every rank, itself included (r + 1 rows to rank r, two groups of
-    different widths in one exchange of counts): each receives them in rank order, with offsets."""
+    """Each rank sends rows to every rank, itself included (r + 1 rows to rank r, in no order, and
+    two rows to nowhere, −1; two groups of different widths in one exchange of counts): each
+    receives them in rank order, with offsets, and none of those sent nowhere."""
     size, rank = comm.size, comm.rank
-    destination = np.repeat(np.arange(size), np.arange(1, size + 1))
+    rows = np.append(np.repeat(np.arange(size), np.arange(1, size + 1)), [-1, -1])
+    destination = np.random.default_rng(rank).permutation(rows)
     wide = np.stack([np.full(len(destination), rank), destination, np.arange(len(destination))], axis=1).astype(float)
     narrow = wide[:, :1] + 0.5
     (got, offsets), (got_narrow, narrow_offsets) = exchanged(comm, (destination, wide), (destination, narrow))
@@ -56,4 +58,7 @@ def test_rows_reach_the_ranks_they_are_sent_to(comm):
     np.testing.assert_array_equal(narrow_offsets, offsets)
     np.testing.assert_array_equal(got[:, 0], expected_from)
     assert (got[:, 1] == rank).all()
+    every = comm.allgather(destination)
+    for r in range(size):   # each sender's rows, in the order it sent them
+        np.testing.assert_array_equal(got[offsets[r]:offsets[r + 1], 2], np.flatnonzero(every[r] == rank))
     np.testing.assert_array_equal(got_narrow[:, 0], expected_from + 0.5)
