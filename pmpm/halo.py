@@ -42,10 +42,10 @@ class Halo:
     owners' (and zeroes them): one message each way per neighbour, none between ranks that share
     no ghost. ``merge`` takes one message each way between ranks that hold a particle together:
     each holder sends its change to the others, and all add the changes in rank order.
-    ``post_shared`` / ``take_shared`` pass the shared rows' values on from one rank to the next, in
-    the order of ``colours`` (the block Gauss–Seidel's sweeps): those of the rows both ranks change
-    (``passes``, agreed once per step); ``pass_rest`` sends the rows only the sender changes once,
-    after the last sweep.
+    ``passes`` agrees, once per step, which shared rows the block Gauss–Seidel's sweeps pass on from
+    one rank to the next in the order of ``colours`` (``collisions.block``, compiled with its
+    messages): after each sweep those both ranks change, after the last the rows only the sender
+    changes.
     """
 
     comm: object
@@ -159,35 +159,6 @@ class Halo:
             passes[r] = Pass(rows[r][mine & other], rows[r][mine & ~other], rows[r][other & ~mine])
         return passes
 
-    def post_shared(self, passes: dict, ranks, *arrays: np.ndarray, after: bool = False) -> list:
-        """Send each of ``ranks`` the rows of ``arrays`` (2-D) it is passed each sweep (``passes``;
-        with ``after``, those passed after the last sweep), side by side, without waiting; returns
-        (request, buffer) pairs: wait on the requests before the buffers go."""
-        requests = []
-        for r in ranks:
-            block = _rows_of(passes[r].sent_after if after else passes[r].sweep, arrays)
-            self.sent += block.nbytes
-            requests.append((self.comm.Isend(block, dest=r, tag=76 if after else 79), block))
-        return requests
-
-    def take_shared(self, passes: dict, ranks, *arrays: np.ndarray, after: bool = False) -> None:
-        """Receive from each of ``ranks``, in that order, what its ``post_shared`` sent, and set the
-        rows it passes here (``passes``) to it (the later rank's value where two send one)."""
-        width = sum(array.shape[1] for array in arrays)
-        for r in ranks:
-            rows = passes[r].received_after if after else passes[r].sweep
-            block = np.empty((len(rows), width))
-            self.comm.Recv(block, source=r, tag=76 if after else 79)
-            _set_rows(rows, block, arrays)
-
-    def pass_rest(self, passes: dict, ranks, *arrays: np.ndarray) -> None:
-        """Collective among ``ranks`` (in colour order). After the last sweep, the rows only the
-        sender changed (``passes``): every holder then has every shared row as if all had been
-        passed each sweep."""
-        posted = self.post_shared(passes, ranks, *arrays, after=True)
-        self.take_shared(passes, ranks, *arrays, after=True)
-        MPI.Request.Waitall([request for request, _ in posted])
-
     def merge(self, reference: tuple, *arrays: np.ndarray) -> None:
         """Collective. Copies of particles changed by the ranks that hold them: each holder's change
         since ``reference`` (the arrays as they were at the last merge, the same on every holder) is
@@ -244,17 +215,6 @@ def _rows_of(rows, arrays):
                 out[i, column + j] = arrays[k][rows[i], j]
         column += arrays[k].shape[1]
     return out
-
-
-@njit(cache=True)
-def _set_rows(rows, block, arrays):
-    """The inverse of ``_rows_of``: the arrays' ``rows`` set to ``block``'s columns."""
-    column = 0
-    for k in range(len(arrays)):
-        for i in range(len(rows)):
-            for j in range(arrays[k].shape[1]):
-                arrays[k][rows[i], j] = block[i, column + j]
-        column += arrays[k].shape[1]
 
 
 @njit(cache=True)

@@ -62,3 +62,24 @@ def test_rows_reach_the_ranks_they_are_sent_to(comm):
     for r in range(size):   # each sender's rows, in the order it sent them
         np.testing.assert_array_equal(got[offsets[r]:offsets[r + 1], 2], np.flatnonzero(every[r] == rank))
     np.testing.assert_array_equal(got_narrow[:, 0], expected_from + 0.5)
+
+
+@pytest.mark.mpi
+def test_the_kernels_own_messages_reach_every_rank(comm):
+    """The MPI calls the compiled kernels make themselves (``collisions.messages``, the block sweeps'
+    messages): rows sent to the next rank without waiting arrive there whole, from the rank before,
+    and the nonblocking maximum is the largest value of every rank."""
+    from pmpm.collisions import messages
+    size, rank = comm.size, comm.rank
+    mpi = messages.handles(comm)
+    held, status = messages.requests(2, mpi), messages.statuses(1, mpi)
+    rows = np.arange(12.0).reshape(4, 3) + 100 * rank
+    messages.post(rows, (rank + 1) % size, 5, held, 0, mpi)
+    got = np.empty_like(rows)
+    messages.receive(got, (rank - 1) % size, 5, status, mpi)
+    messages.wait_all(held, 1, status, mpi)
+    np.testing.assert_array_equal(got, np.arange(12.0).reshape(4, 3) + 100 * ((rank - 1) % size))
+    value, largest = np.array([rank + 0.5]), np.zeros(1)
+    messages.post_maximum(value, largest, held, 1, mpi)
+    messages.wait(held, 1, status, mpi)
+    assert largest[0] == size - 0.5

@@ -33,7 +33,7 @@ from __future__ import annotations
 import numpy as np
 from mpi4py import MPI
 
-from . import jit
+from . import jit, messages
 from .record import ContactMemory
 from .search import find_contacts, travel_of, wall_arrays
 from .dense import bodies_in, finish, targets
@@ -41,7 +41,7 @@ from .settings import COLD_SWEEPS, ENERGY_TOL, SEARCH_SLACK, SWEEP_TOL, Collisio
 from .solver import Bodies, ContactStep, advance_with_collisions, remove_overlaps
 from .stats import CLAMPS, DEPOSITED, EXTRA, NAMES, SWEEPS, as_dict, new_counters
 from .walls import Walls
-from ..halo import Halo
+from ..halo import Halo, Pass
 from ..ownership import Partition, particle_rows, particles_of
 from ..particles import FREE, ParticleState
 
@@ -267,47 +267,25 @@ def block_sweeps(halo: Halo, rows, contacts, target, mu, bodies, lam_n, lam_t, b
     # (``changing``): those it passes on each sweep
     border_rows, border_kn, border_kt, inner_rows, inner_kn, inner_kt, changing = impulses.split_at_shared(
         rows, shared, first, second, r_first, r_second, inv_m, inv_i)
-    # each block's 1/k_n, 1/k_t, its impulses before a sweep and its conjugate direction
-    border = (border_kn, border_kt, np.empty((len(border_rows), 4)), np.zeros((len(border_rows), 4)))
-    inner = (inner_kn, inner_kt, np.empty((len(inner_rows), 4)), np.zeros((len(inner_rows), 4)))
     watched, arm = impulses.watched_bodies(rows, first, second, r_first, r_second, inv_m, np.append(halo.owned, False))
     colour = halo.colours()
     neighbours = sorted(halo.shared_at, key=lambda r: colour[r])
     passes = halo.passes(neighbours, changing)
-    lower = [r for r in neighbours if colour[r] < colour[halo.comm.rank]]
-    higher = [r for r in neighbours if colour[r] > colour[halo.comm.rank]]
-    contacts = (first, second, normal, r_first, r_second, u_wall, target, mu, inv_m, inv_i, v, w, lam_n, lam_t)
-    stepped = (first, second, normal, r_first, r_second, inv_m, inv_i, v, w, lam_n, lam_t)
-    done, previous, beta, stop = 0, 0.0, 2.0, False
-    tests = []   # (request, its largest change) of the sweeps whose test is being reduced, oldest first
-    saved = np.empty((len(watched), 6))
-    impulses.change_since(watched, v, w, arm, saved)   # (saved takes their velocities)
-    impulses.conjugate_step(inner_rows, beta, inner[2], inner[3], *stepped, True)   # (β = 2: none; p = 0)
-    while not stop:
-        # the border's conjugate step (of the sweep before) and sweep after the lower colours', then the
-        # inner sweep and its conjugate step (no other rank's body) while the higher colours sweep theirs
-        halo.take_shared(passes, lower, v, w)
-        impulses.conjugate_step(border_rows, beta, border[2], border[3], *stepped, True)
-        size = impulses.sweep_from(border_rows, *border[:3], *contacts)
-        posted = halo.post_shared(passes, neighbours, v, w)
-        size += impulses.sweep_from(inner_rows, *inner[:3], *contacts)
-        done += 1
-        if len(tests) == 2:   # the test of the sweep before the last, reduced meanwhile
-            request, largest = tests.pop(0)
-            request.Wait()
-            stop = largest[0] <= tol
-        stop = stop or done == budget
-        beta = size / previous if previous > 0 else 2.0
-        previous = size
-        if not stop:
-            impulses.conjugate_step(inner_rows, beta, inner[2], inner[3], *stepped, True)
-        halo.take_shared(passes, higher, v, w)
-        MPI.Request.Waitall([request for request, _ in posted])
-        largest = np.array([impulses.change_since(watched, v, w, arm, saved)])
-        tests.append((halo.comm.Iallreduce(MPI.IN_PLACE, largest, op=MPI.MAX), largest))
-    MPI.Request.Waitall([request for request, _ in tests])
-    halo.pass_rest(passes, neighbours, v, w)
+    lower = sum(colour[r] < colour[halo.comm.rank] for r in neighbours)
+    swept, sent_after, received_after = ([getattr(passes[r], name) for r in neighbours] for name in Pass._fields)
+    passed = (*joined(swept), *joined(sent_after), *joined(received_after))
+    done, _ = kernels.block.sweeps(
+        (border_rows, border_kn, border_kt), (inner_rows, inner_kn, inner_kt), watched, arm,
+        (first, second, normal, r_first, r_second, u_wall, target, mu), bodies, lam_n, lam_t,
+        np.array(neighbours, np.int64), lower, passed, budget, tol, messages.handles(halo.comm))
+    halo.sent += 6 * v.itemsize * (done * len(passed[0]) + len(passed[2]))   # (v, ω) per row passed
     return done
+
+
+def joined(parts: list) -> tuple:
+    """Arrays of rows, one after another, and the offsets where each begins (and the last ends)."""
+    return (np.concatenate([np.zeros(0, np.int64), *parts]).astype(np.int64),
+            np.cumsum([0] + [len(part) for part in parts]).astype(np.int64))
 
 
 def limit_energy(halo: Halo, owned_members, bodies, v0, w0, energy: float) -> float:
