@@ -12,6 +12,7 @@ pointers, MPICH's ints on x86-64 and arm64).
 from __future__ import annotations
 
 import ctypes
+from functools import cache
 from typing import NamedTuple
 
 import numpy as np
@@ -47,6 +48,7 @@ def handles(comm) -> Handles:
                    MPI._sizeof(MPI.Request), MPI._sizeof(MPI.Status))
 
 
+@cache
 def _expose_library() -> None:
     """Make the MPI library's symbols resolvable by the compiled kernels (mpi4py loads Open MPI's
     globally already; any other is loaded again, globally, from where the process mapped it)."""
