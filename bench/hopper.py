@@ -15,7 +15,9 @@ half of SIM_TIME) against Beverloo's law (C = 0.58, k = 1.5, bulk density 0.6 ρ
 (impacts faster than the rest speed) per wall second, events and dense-step contacts and sweeps per
 step, and on several ranks the most particles a rank owned and held as ghosts and the most bytes it
 sent in a contact step; then the LIGGGHTS peer (Hertz contacts at dt = 2e-5 s) run in the same
-invocation and the time-to-solution ratio pmpm/LIGGGHTS. Needs the peer's Debian package (liggghts),
+invocation, the time-to-solution ratio pmpm/LIGGGHTS and LIGGGHTS's own speed-up from 1 to 2 ranks
+(what a second rank gains on this machine at that time: on a shared machine it moves by tens of per
+cent from one day to the next, docs/collisions.md, "Sixteenth session"). Needs the peer's Debian package (liggghts),
 which the peer script installs with apt-get if missing. On several ranks each rank owns the
 particles in its box (docs/collisions.md, "Particles owned by ranks"); the fill and a 5-step untimed
 discharge on each rank count compile the contact kernels (numba) once, the timed runs load them from
@@ -162,14 +164,18 @@ def main():
         print(f"LIGGGHTS peer script not found at {PEER}: no comparison")
         return
     peer = subprocess.run(["bash", str(PEER), "--sim-time", str(sim_time), str(count)], capture_output=True, text=True)
+    peer_walls = {}
     for line in peer.stdout.splitlines():
         match = re.search(r"ranks=(\d+).*wall_s=([0-9.]+).*discharged=(\d+)", line)
         if match:
             ranks, wall = int(match.group(1)), float(match.group(2))
+            peer_walls[ranks] = wall
             print(line)
             if ranks in results:
                 print(f"  time-to-solution pmpm/LIGGGHTS on {ranks} rank(s): {results[ranks] / wall:.2f} "
                       f"(LIGGGHTS discharged {match.group(3)} = {int(match.group(3)) / sim_time:.0f}/s)")
+    if peer_walls.get(1) and peer_walls.get(2):   # what 2 ranks gain on this machine at this time, for another code
+        print(f"LIGGGHTS speed-up 1 -> 2 ranks: {peer_walls[1] / peer_walls[2]:.2f}")
     if peer.returncode != 0:
         print(f"LIGGGHTS peer failed (exit {peer.returncode}): {peer.stderr.strip()[-500:]}")
 
