@@ -12,6 +12,8 @@ One compiled contact engine for every regime, laid out by stage:
                      overlap removal
 - ``events``         compiled time-ordered schedule of a step with few contacts (``event_queue``)
 - ``dense``          a step with many contacts (a bed, a hopper): all at once
+- ``subdomains``     the engine over the particles a rank owns; ``block``: its sweeps over the ranks,
+                     compiled with their messages (``messages``: MPI's calls from compiled code)
 - ``deposition``     compiled deposition zones
 - ``record``         ``ContactRecord`` and ``ContactMemory`` (impulses kept between steps)
 - ``solver``         ``advance_with_collisions``: one step, every regime

@@ -54,10 +54,10 @@ def _expose_library() -> None:
     globally already; any other is loaded again, globally, from where the process mapped it)."""
     if hasattr(ctypes.CDLL(None), "MPI_Isend"):
         return
+    from llvmlite import binding
     with open("/proc/self/maps") as maps:
         paths = {line.split()[-1] for line in maps if "/libmpi" in line and ".so" in line}
     for path in sorted(paths):
-        from llvmlite import binding
         binding.load_library_permanently(path)
 
 
