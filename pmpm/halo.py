@@ -11,7 +11,7 @@ import numpy as np
 from mpi4py import MPI
 from numba import njit
 
-from .ownership import Partition, greedy_colours
+from .ownership import Partition, box_distance, greedy_colours
 from .packed import FIELD_COLUMNS, X, exchanged, merged, packed
 from .particles import ParticleState
 
@@ -61,12 +61,9 @@ class Halo:
         """Collective. The ghosts of every rank's ``particles`` (owned), sent to each rank whose box
         lies within ``width`` (m; per particle, or one value) of the centre. Returns the halo and
         the local particles (owned and ghosts, sorted by id)."""
-        width = np.broadcast_to(np.asarray(width, float), (len(particles),))
-        near = np.flatnonzero(_depths(particles.x, partition.lower[comm.rank], partition.upper[comm.rank]) < width)
-        reach = partition.distance(particles.x[near]) < width[near, None]
-        reach[:, comm.rank] = False
-        rank, row = np.nonzero(reach.T)                     # grouped by rank, by id within each
-        sources = near[row]
+        width = np.ascontiguousarray(np.broadcast_to(np.asarray(width, float), (len(particles),)))
+        rank, sources = _ghosts_sent(np.ascontiguousarray(particles.x, float), width, partition.lower,
+                                     partition.upper, comm.rank)   # grouped by rank, by id within each
         block = packed(particles, sources, width)   # (with the width: the receiver finds the holders)
         [(arrived, offsets)] = exchanged(comm, (rank, block))
         local, where, ghost_rows, _ = merged(particles, arrived)
@@ -77,10 +74,7 @@ class Halo:
         receive = {int(r): ghost_rows[offsets[r]:offsets[r + 1]] for r in np.flatnonzero(np.diff(offsets))}
         # who holds what together: an owned particle with the ranks it went to; a ghost with every
         # rank its owner sent it to (the same test on the same bits) and its owner
-        held = partition.distance(arrived[:, X:X + 3]) < arrived[:, FIELD_COLUMNS, None]
-        held[np.arange(len(arrived)), np.repeat(np.arange(comm.size), np.diff(offsets))] = True
-        held[:, comm.rank] = False
-        ghost, other = np.nonzero(held)
+        ghost, other = _holders(arrived, offsets, partition.lower, partition.upper, comm.rank)
         local_row, other = np.concatenate([where[sources], ghost_rows[ghost]]), np.concatenate([rank, other])
         shared = np.zeros(len(local), bool)
         shared[local_row] = True
@@ -192,13 +186,51 @@ class Halo:
 
 
 @njit(cache=True)
-def _depths(x, lower, upper):
-    """(n,) how deep each point (n, 3) lies in the box [lower, upper) (m: to its nearest side)."""
-    depth = np.full(len(x), np.inf)
-    for i in range(len(x)):
+def _ghosts_sent(x, width, lower, upper, me):
+    """The ghosts rank ``me`` sends: (ranks, rows) of its particles (centres x (n, 3)) within
+    ``width`` (n,) of another rank's box (``lower``, ``upper``: (ranks, 3) each), grouped by rank,
+    by row within each (a particle near a corner goes to several). Only the particles nearer than
+    their width to a side of this rank's box are measured against the others'."""
+    n, ranks = len(x), len(lower)
+    near = np.zeros(n, np.bool_)
+    count = np.zeros(ranks + 1, np.int64)
+    for i in range(n):
+        depth = np.inf
         for d in range(3):
-            depth[i] = min(depth[i], x[i, d] - lower[d], upper[d] - x[i, d])
-    return depth
+            depth = min(depth, x[i, d] - lower[me, d], upper[me, d] - x[i, d])
+        near[i] = depth < width[i]
+        if near[i]:
+            for r in range(ranks):
+                if r != me and box_distance(x[i], lower[r], upper[r]) < width[i]:
+                    count[r + 1] += 1
+    for r in range(ranks):
+        count[r + 1] += count[r]
+    rank, rows = np.empty(count[ranks], np.int64), np.empty(count[ranks], np.int64)
+    for i in range(n):
+        if near[i]:
+            for r in range(ranks):
+                if r != me and box_distance(x[i], lower[r], upper[r]) < width[i]:
+                    rank[count[r]], rows[count[r]] = r, i
+                    count[r] += 1
+    return rank, rows
+
+
+@njit(cache=True)
+def _holders(arrived, offsets, lower, upper, me):
+    """The other ranks that hold each ghost that arrived here (``arrived``'s rows, rank r's from
+    ``offsets[r]``, its width after its fields): its owner, and every rank its owner sent it to
+    (the owner's test, on the same bits). (ghost rows, ranks), by row, by rank within each."""
+    ranks = len(lower)
+    ghost, other = np.empty(len(arrived) * ranks, np.int64), np.empty(len(arrived) * ranks, np.int64)
+    k = 0
+    for owner in range(ranks):
+        for g in range(offsets[owner], offsets[owner + 1]):
+            for r in range(ranks):
+                if r != me and (r == owner or box_distance(arrived[g, X:X + 3], lower[r], upper[r])
+                                < arrived[g, FIELD_COLUMNS]):
+                    ghost[k], other[k] = g, r
+                    k += 1
+    return ghost[:k], other[:k]
 
 
 @njit(cache=True)

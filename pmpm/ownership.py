@@ -77,20 +77,27 @@ def _owners(x, lower, upper):
 
 @njit(cache=True)
 def _box_distances(x, lower, upper):
-    """``Partition.distance``, compiled (every contact step's halo asks it of the particles near
-    the box's sides); a coordinate that is not finite adds nothing, an empty box (inf) is at inf."""
+    """``Partition.distance``, compiled."""
     distance = np.zeros((len(x), len(lower)))
     for i in range(len(x)):
         for rank in range(len(lower)):
-            squared = 0.0
-            for axis in range(3):
-                below, above = lower[rank, axis] - x[i, axis], x[i, axis] - upper[rank, axis]
-                if below > 0:
-                    squared += below * below
-                elif above > 0:
-                    squared += above * above
-            distance[i, rank] = np.sqrt(squared)
+            distance[i, rank] = box_distance(x[i], lower[rank], upper[rank])
     return distance
+
+
+@njit(cache=True)
+def box_distance(point, lower, upper):
+    """The distance (m) from ``point`` (3,) to the box [lower, upper) ((3,) each; 0 inside); a
+    coordinate that is not finite adds nothing, an empty box (inf) is at inf. Compiled: the halo
+    asks it of the particles near a box's sides every contact step (``pmpm.halo``)."""
+    squared = 0.0
+    for axis in range(3):
+        below, above = lower[axis] - point[axis], point[axis] - upper[axis]
+        if below > 0:
+            squared += below * below
+        elif above > 0:
+            squared += above * above
+    return np.sqrt(squared)
 
 
 def bisect(comm, x: np.ndarray, domain: tuple | None = None, work: np.ndarray | None = None) -> Partition:

@@ -7,7 +7,9 @@ Where the reach is per particle (a dense step: each particle's travel), the typi
 90th percentile, and the few faster particles ("wide") check as many cells around them as their
 own reach needs, for every partner: otherwise a few fast spheres (at a hopper's orifice) would set
 the size of every cell, and a slow pack's particles would each check several times as many
-neighbours. Cells are grown when
+neighbours. Where only the pairs with a ``chosen`` particle are wanted (a rank's owned particles
+among its ghosts), the others scan nothing: a chosen one lists its partners that are not chosen on
+both sides. Cells are grown when
 the particles are spread thinly (at most 8 per particle), so a gas in a large domain costs no more
 than its particles.
 """
@@ -62,9 +64,11 @@ def close_pairs(x, radius, reach, chosen):
         fill[home[i]] += 1
     found = np.empty((8 * n + 16, 2), np.int64)
     count = 0
-    behind = np.empty((16, 2), np.int64)   # (j, i) with j < i narrow, found by a wide i
+    behind = np.empty((16, 2), np.int64)   # (j, i) with j < i found by i: a wide i, or j not chosen
     late = 0
     for i in range(n):
+        if not (chosen[i] or wide[i]):   # (its pairs with chosen ones are listed by them)
+            continue
         h = home[i]
         a, b, c = h // (dims[1] * dims[2]), (h // dims[2]) % dims[1], h % dims[2]
         span = int(np.ceil((wide_limit + reach[i]) / cell)) if wide[i] else 1
@@ -78,7 +82,7 @@ def close_pairs(x, radius, reach, chosen):
                         # a pair with a wide particle is listed by it (two wide ones: the lower)
                         if j == i or not (chosen[i] or chosen[j]) or (wide[j] and j < i):
                             continue
-                        if not wide[i] and (j < i or wide[j]):
+                        if not wide[i] and (wide[j] or (j < i and chosen[j])):
                             continue
                         d0, d1, d2 = x[i, 0] - x[j, 0], x[i, 1] - x[j, 1], x[i, 2] - x[j, 2]
                         limit = (radius[i] + radius[j]) * (1.0 + CONTACT_TOL) + reach[i] + reach[j]
