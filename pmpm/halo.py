@@ -75,13 +75,9 @@ class Halo:
         # who holds what together: an owned particle with the ranks it went to; a ghost with every
         # rank its owner sent it to (the same test on the same bits) and its owner
         ghost, other = _holders(arrived, offsets, partition.lower, partition.upper, comm.rank)
-        local_row, other = np.concatenate([where[sources], ghost_rows[ghost]]), np.concatenate([rank, other])
-        shared = np.zeros(len(local), bool)
-        shared[local_row] = True
-        shared_rows = np.flatnonzero(shared)
-        position = np.cumsum(shared) - 1                   # a shared local row's place in shared_rows
-        shared_at = {int(r): position[np.sort(local_row[other == r])]
-                     for r in np.flatnonzero(np.bincount(other, minlength=comm.size))}
+        shared_rows, at, edges = _shared(len(local), np.concatenate([where[sources], ghost_rows[ghost]]),
+                                         np.concatenate([rank, other]), comm.size)
+        shared_at = {int(r): at[edges[r]:edges[r + 1]] for r in np.flatnonzero(np.diff(edges))}
         return cls(comm, owned, send, receive, shared_rows, shared_at, block.nbytes), local
 
     def _swap(self, outgoing: dict, incoming: dict, arrays: tuple, combine) -> None:
@@ -231,6 +227,35 @@ def _holders(arrived, offsets, lower, upper, me):
                     ghost[k], other[k] = g, r
                     k += 1
     return ghost[:k], other[:k]
+
+
+@njit(cache=True)
+def _shared(n, local_row, other, ranks):
+    """From each (local row, other rank holding that particle too) of ``local_row``, ``other``: the
+    shared rows (sorted), and per rank the positions in them of the rows it holds too, ascending
+    (all ranks' one after another, rank r's from ``edges[r]``)."""
+    shared = np.zeros(n, np.bool_)
+    for k in range(len(local_row)):
+        shared[local_row[k]] = True
+    position = np.full(n, -1, np.int64)    # a shared row's place in shared_rows
+    count = 0
+    for i in range(n):
+        if shared[i]:
+            position[i] = count
+            count += 1
+    shared_rows = np.flatnonzero(shared)
+    edges = np.zeros(ranks + 1, np.int64)
+    for k in range(len(other)):
+        edges[other[k] + 1] += 1
+    for r in range(ranks):
+        edges[r + 1] += edges[r]
+    at, fill = np.empty(len(other), np.int64), edges[:ranks].copy()
+    for k in range(len(other)):
+        at[fill[other[k]]] = position[local_row[k]]
+        fill[other[k]] += 1
+    for r in range(ranks):
+        at[edges[r]:edges[r + 1]] = np.sort(at[edges[r]:edges[r + 1]])
+    return shared_rows, at, edges
 
 
 @njit(cache=True)

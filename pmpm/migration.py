@@ -133,10 +133,7 @@ def migrate_particles(comm, exits, state: RunState, start: np.ndarray, dt: float
     particles, _, _, (force, torque) = merged(particles, arrived, keep, hydro)
     state = replace(state, particles=particles, hydro_force=force, hydro_torque=torque)
     if contacts is not None and (len(follows) or len(arrived_contacts[0][0])):
-        new = memory_arrays(arrived_contacts[0][0])
-        memory = spliced(contacts.to_arrays(), contacts.keys, follows, new,
-                         ContactMemory.key_of(new["first_id"], new["second_id"]))
-        state = replace(state, contacts=ContactMemory.from_arrays(memory))
+        state = replace(state, contacts=spliced(contacts, follows, arrived_contacts[0][0]))
     return state
 
 
@@ -147,31 +144,44 @@ def memory_rows(contacts: ContactMemory, rows: np.ndarray) -> np.ndarray:
                             contacts.tangential_impulse[rows]]).astype(float)
 
 
-def memory_arrays(block: np.ndarray) -> dict:
-    """The inverse of ``memory_rows``: ``ContactMemory``'s fields by name."""
-    return {"first_id": block[:, 0].astype(np.int64), "second_id": block[:, 1].astype(np.int64),
-            "normal_impulse": block[:, 2].copy(), "tangential_impulse": block[:, 3:6].copy()}
-
-
-def spliced(rows: dict, keys: np.ndarray, drop: np.ndarray, added: dict, added_keys: np.ndarray) -> dict:
-    """``rows`` (arrays sorted by ``keys``) less the rows ``drop`` (indices, ascending) and with the
-    rows ``added`` (any order) in their places by key: copied by slices between the rows that
-    change (a step's migration changes a few rows of thousands; a boolean mask on rows of (n, 3)
-    took 20 times a copy's time)."""
-    order = np.argsort(added_keys, kind="stable")
-    at = np.searchsorted(keys, added_keys[order])
-    # pieces in the order of the result: (start, stop) a range of the old rows, j the j-th added row
-    pieces, cursor = [], 0
-    events = sorted([(int(p), 0, j) for j, p in enumerate(at)] + [(int(d), 1, 0) for d in drop])
-    for position, dropping, j in events:
-        if position > cursor:
-            pieces.append((cursor, position))
-        cursor = max(cursor, position + dropping)
-        if not dropping:
-            pieces.append(j)
-    pieces.append((cursor, len(keys)))
-    result = {}
-    for name, values in rows.items():
-        new = added[name][order]
-        result[name] = np.concatenate([values[p[0]:p[1]] if isinstance(p, tuple) else new[p:p + 1] for p in pieces])
+def spliced(memory: ContactMemory, drop: np.ndarray, block: np.ndarray) -> ContactMemory:
+    """``memory`` less its rows ``drop`` (indices), with the contacts of ``block`` (rows as from
+    ``memory_rows``, any order) in their places by (first_id, second_id): one compiled merge (a
+    step's migration changes a few rows of thousands)."""
+    first_id, second_id = block[:, 0].astype(np.int64), block[:, 1].astype(np.int64)
+    order = np.argsort(ContactMemory.key_of(first_id, second_id), kind="stable")
+    keep = np.ones(len(memory), bool)
+    keep[drop] = False
+    n = int(keep.sum()) + len(block)
+    result = ContactMemory(np.empty(n, np.int64), np.empty(n, np.int64), np.empty(n), np.empty((n, 3)))
+    _splice(memory.first_id, memory.second_id, memory.normal_impulse, memory.tangential_impulse, keep,
+            first_id, second_id, block, order, result.first_id, result.second_id, result.normal_impulse,
+            result.tangential_impulse)
     return result
+
+
+@njit(cache=True)
+def _splice(first, second, normal, tangential, keep, new_first, new_second, block, order,
+            out_first, out_second, out_normal, out_tangential):
+    """The rows where ``keep`` (sorted by (first, second)) and the block's rows in ``order`` merged
+    by (first, second) into the out_ arrays, an added row before a kept one of the same key."""
+    n, m = len(first), len(order)
+    i, j = 0, 0
+    for k in range(len(out_first)):
+        while i < n and not keep[i]:
+            i += 1
+        if j < m:
+            a = order[j]
+            added = i == n or new_first[a] < first[i] or (new_first[a] == first[i] and new_second[a] <= second[i])
+        else:
+            added = False
+        if added:
+            out_first[k], out_second[k], out_normal[k] = new_first[a], new_second[a], block[a, 2]
+            for d in range(3):
+                out_tangential[k, d] = block[a, 3 + d]
+            j += 1
+        else:
+            out_first[k], out_second[k], out_normal[k] = first[i], second[i], normal[i]
+            for d in range(3):
+                out_tangential[k, d] = tangential[i, d]
+            i += 1

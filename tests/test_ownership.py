@@ -100,24 +100,28 @@ def test_owner_of_is_the_box_holding_each_point():
     assert np.bincount(owner[:4000], minlength=8).min() >= 4000 // 8 - 40
 
 
-def test_spliced_rows_are_the_sorted_rows_less_those_dropped_plus_those_added():
-    """Migration's splice against a plain sort: drops and insertions at the same place, next to
-    each other, at both ends, and none."""
-    from pmpm.migration import spliced
+def test_spliced_memory_is_the_sorted_rows_less_those_dropped_plus_those_added():
+    """Migration's splice of the contact memory against a plain sort by (first_id, second_id):
+    drops and insertions at the same place, next to each other, at both ends, none, and wall
+    contacts (second_id < 0) beside particle ones of the same first particle."""
+    from pmpm.collisions import ContactMemory
+    from pmpm.migration import memory_rows, spliced
     rng = np.random.default_rng(3)
-    keys = np.sort(rng.choice(100, 30, replace=False)) * 2        # even keys held, odd ones added
-    rows = {"key": keys, "x": rng.random((30, 3))}
-    cases = [([], []), ([0, 1, 2], [-1, 1]), ([29], [199, 59]), ([5, 6, 10], [keys[5] + 1, keys[10] - 1, 3]),
-             (list(range(30)), [7])]
-    for drop, added_keys in cases:
-        added_keys = np.array(added_keys, np.int64)
-        added = {"key": added_keys, "x": rng.random((len(added_keys), 3))}
-        result = spliced(rows, keys, np.array(drop, np.int64), added, added_keys)
+    pairs = sorted({(int(a), int(b)) for a, b in zip(rng.integers(0, 20, 60), rng.integers(-3, 40, 60))})[:30]
+    first, second = (np.array(column, np.int64) for column in zip(*pairs))   # (held: sorted, distinct)
+    memory = ContactMemory(first, second, rng.random(30), rng.random((30, 3)))
+    cases = [([], []), ([0, 1, 2], [(-1, 5), (0, 41)]), ([29], [(25, 0), (19, 50)]),
+             ([5, 6, 10], [(int(first[5]), 45), (int(first[10]), -9), (3, -4)]), (list(range(30)), [(7, 7)])]
+    for drop, added in cases:
+        ids = np.array(added, np.int64).reshape(-1, 2)
+        new = ContactMemory(ids[:, 0], ids[:, 1], rng.random(len(ids)), rng.random((len(ids), 3)))
+        result = spliced(memory, np.array(drop, np.int64), memory_rows(new, np.arange(len(new))[::-1]))
         keep = np.setdiff1d(np.arange(30), drop)
-        every = {name: np.concatenate([rows[name][keep], added[name]]) for name in rows}
-        order = np.argsort(every["key"])
-        for name in rows:
-            np.testing.assert_array_equal(result[name], every[name][order])
+        every = {name: np.concatenate([getattr(memory, name)[keep], getattr(new, name)])
+                 for name in ("first_id", "second_id", "normal_impulse", "tangential_impulse")}
+        order = np.lexsort((every["second_id"], every["first_id"]))
+        for name, values in every.items():
+            np.testing.assert_array_equal(getattr(result, name), values[order])
 
 
 def test_block_sweep_set_up_against_plain_numpy():
