@@ -188,26 +188,31 @@ def _ghosts_sent(x, width, lower, upper, me):
     by row within each (a particle near a corner goes to several). Only the particles nearer than
     their width to a side of this rank's box are measured against the others'."""
     n, ranks = len(x), len(lower)
-    near = np.zeros(n, np.bool_)
-    count = np.zeros(ranks + 1, np.int64)
+    near = np.empty(n, np.int64)
+    m = 0
     for i in range(n):
         depth = np.inf
         for d in range(3):
             depth = min(depth, x[i, d] - lower[me, d], upper[me, d] - x[i, d])
-        near[i] = depth < width[i]
-        if near[i]:
-            for r in range(ranks):
-                if r != me and box_distance(x[i], lower[r], upper[r]) < width[i]:
-                    count[r + 1] += 1
+        if depth < width[i]:
+            near[m] = i
+            m += 1
+    reach = np.zeros((m, ranks), np.bool_)
+    count = np.zeros(ranks + 1, np.int64)
+    for k in range(m):
+        i = near[k]
+        for r in range(ranks):
+            if r != me and box_distance(x[i], lower[r], upper[r]) < width[i]:
+                reach[k, r] = True
+                count[r + 1] += 1
     for r in range(ranks):
         count[r + 1] += count[r]
     rank, rows = np.empty(count[ranks], np.int64), np.empty(count[ranks], np.int64)
-    for i in range(n):
-        if near[i]:
-            for r in range(ranks):
-                if r != me and box_distance(x[i], lower[r], upper[r]) < width[i]:
-                    rank[count[r]], rows[count[r]] = r, i
-                    count[r] += 1
+    for k in range(m):
+        for r in range(ranks):
+            if reach[k, r]:
+                rank[count[r]], rows[count[r]] = r, near[k]
+                count[r] += 1
     return rank, rows
 
 
