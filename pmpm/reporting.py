@@ -32,24 +32,41 @@ class StageTimes:
             self.seconds[name] = self.seconds.get(name, 0.0) + wallclock.perf_counter() - start
 
 
+PACE_STEPS = 3   # the fewest steps a progress line's ETA is taken from (fewer: the last pace, or "?")
+
+
 class Progress:
-    """Compact progress lines on rank 0: step, simulated time, wall time, ETA, every few seconds."""
+    """Compact progress lines on rank 0: step, simulated time, wall time, ETA, every few seconds.
+
+    The ETA is the simulated time left at the median pace (wall seconds per simulated second) of
+    the steps since the last line (at least ``PACE_STEPS``; "?" until there have been as many), so
+    that a few slow steps do not set it: the first ones of a run, which compile or load the
+    contact kernels (tens of seconds on a first run), and those that write outputs."""
 
     def __init__(self, comm, end_time: float, quiet: bool, every_seconds: float = 5.0, start_time: float = 0.0):
         self.comm, self.end_time, self.quiet, self.every = comm, end_time, quiet, every_seconds
-        self.start_time = start_time
-        self.start = self.last = wallclock.perf_counter()
+        self.start = self.last = self.last_step = wallclock.perf_counter()
+        self.last_time = start_time
+        self.paces: list[float] = []   # wall s per simulated s of each step since the last line
+        self.pace = math.nan            # ... their median at the last line
 
     def update(self, step: int, time: float, extra: str = "", force: bool = False):
+        """After each step: its pace noted; a line printed if ``every_seconds`` have passed (or ``force``)."""
+        if self.quiet:
+            return
         now = wallclock.perf_counter()
-        if self.quiet or (not force and now - self.last < self.every):
+        if time > self.last_time:
+            self.paces.append((now - self.last_step) / (time - self.last_time))
+        self.last_step, self.last_time = now, time
+        if not force and now - self.last < self.every:
             return
         self.last = now
-        elapsed = now - self.start
-        done = time - self.start_time
-        eta = elapsed * (self.end_time - time) / done if done > 0 else math.nan
+        if len(self.paces) >= PACE_STEPS:
+            self.pace, self.paces = float(np.median(self.paces)), []
+        eta = self.pace * (self.end_time - time) if time < self.end_time else 0.0
+        eta_text = f"{eta:8.1f}" if math.isfinite(eta) else f"{'?':>8}"
         print0(self.comm, f"step {step:7d}  t = {time:.6g} s  ({100 * time / self.end_time:5.1f} %)  "
-                          f"wall {elapsed:8.1f} s  ETA {eta:8.1f} s{extra}")
+                          f"wall {now - self.start:8.1f} s  ETA {eta_text} s{extra}")
 
 
 def describe(model, state, setup_seconds: float) -> str:

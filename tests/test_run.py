@@ -254,3 +254,24 @@ def test_the_ranks_stop_together_at_the_wall_time_limit(tmp_path):
     summary = json.loads((folder / "output" / "summary.json").read_text())
     assert summary["status"] == "stopped at the wall-time limit"
     assert 0 < summary["steps"] < 100
+
+
+def test_the_eta_follows_the_recent_pace_not_the_first_steps(monkeypatch, capsys):
+    """Progress lines: a first step that took 40 s (kernels compiling), then 1/64 s a step, a line
+    every 5 s: the first line, after that one step, gives no ETA; every later one 1/64 s for each
+    step left (the mean pace since the start would add up to 40 s); the last says 0."""
+    from mpi4py import MPI
+    from pmpm import reporting
+
+    clock = [0.0]
+    monkeypatch.setattr(reporting.wallclock, "perf_counter", lambda: clock[0])
+    progress = reporting.Progress(MPI.COMM_SELF, end_time=1000 / 1024, quiet=False)
+    for step in range(1, 1001):   # (times exact in binary)
+        clock[0] += 40.0 if step == 1 else 1 / 64
+        progress.update(step, step / 1024, force=step == 1000)
+    lines = [line for line in capsys.readouterr().out.splitlines() if line.startswith("step")]
+    eta = [line.split("ETA")[1].split()[0] for line in lines]
+    steps = [int(line.split()[1]) for line in lines]
+    assert steps == [1, 321, 641, 961, 1000] and eta[0] == "?"
+    assert [float(value) for value in eta[1:]] == [pytest.approx((1000 - s) / 64, abs=0.05) for s in steps[1:]]
+    assert steps[-1] == 1000 and float(eta[-1]) == 0.0
