@@ -250,3 +250,21 @@ def test_checkpoint_and_restart_continue_the_run(tmp_path):
     (tmp_path / "junk.h5").write_text("not hdf5")
     bad = run_pmpm([folder, "--quiet", "--restart", tmp_path / "junk.h5"])
     assert bad.returncode == 2 and "not a pmpm checkpoint" in bad.stderr and "Traceback" not in bad.stderr
+
+
+@pytest.mark.parametrize("given, expected", [
+    ({}, "^cm"),                                                             # no launcher: one process
+    ({"OMPI_COMM_WORLD_SIZE": "4", "OMPI_COMM_WORLD_LOCAL_SIZE": "4"}, "^cm"),   # mpirun, one node
+    ({"OMPI_COMM_WORLD_SIZE": "8", "OMPI_COMM_WORLD_LOCAL_SIZE": "4"}, None),    # mpirun, two nodes
+    ({"SLURM_PROCID": "0"}, None),                                           # another launcher
+    ({"OMPI_MCA_pml": "ucx"}, "ucx"),                                        # the user's choice
+])
+def test_open_mpis_internode_layer_skipped_on_one_node_only(given, expected):
+    """Importing pmpm before MPI starts: Open MPI's ``cm`` layer (probing it costs 0.2 s a
+    process here) is skipped where every rank is on this node, and only there."""
+    code = "import os, pmpm; print(os.environ.get('OMPI_MCA_pml'))"
+    environment = {name: value for name, value in subprocess_env().items()
+                   if not name.startswith(("PMIX_", "PMI_", "SLURM_"))}
+    result = subprocess.run([PYTHON, "-c", code], env={**environment, **given}, capture_output=True, text=True,
+                            check=True)
+    assert result.stdout.strip() == str(expected)
