@@ -12,10 +12,10 @@ def _on_one_node() -> bool:
 
 
 # Open MPI, as it starts, opens the libraries of its ``cm`` layer (PSM, PSM2: interconnects
-# between nodes) to see whether they serve: 0.2 s of every pmpm process on this machine. On one
-# node shared memory carries every message and Open MPI picks its ``ob1`` layer anyway, so ``cm``
-# is skipped there (README.md, "The command line"). Every rank decides alike; a job across nodes,
-# one under another launcher, and a pml the user chose are left as they are. (Set before any
-# module starts MPI, as importing mpi4py.MPI or petsc4py.PETSc does.)
+# between nodes) to see whether they serve, a large share of a short run's start-up (measured:
+# README.md, "The command line"). On one node shared memory carries every message and Open MPI
+# picks its ``ob1`` layer anyway, so ``cm`` is skipped there. Every rank decides alike; a job
+# across nodes, one under another launcher, and a pml the user chose are left as they are. (Set
+# before any module starts MPI, as importing mpi4py.MPI or petsc4py.PETSc does.)
 if "OMPI_MCA_pml" not in os.environ and _on_one_node():
     os.environ["OMPI_MCA_pml"] = "^cm"

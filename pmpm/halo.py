@@ -197,20 +197,20 @@ def _ghosts_sent(x, width, lower, upper, me):
         if depth < width[i]:
             near[m] = i
             m += 1
-    reach = np.zeros((m, ranks), np.bool_)
+    sent_to = np.zeros((m, ranks), np.bool_)   # (near particle, rank): within its width of that box
     count = np.zeros(ranks + 1, np.int64)
     for k in range(m):
         i = near[k]
         for r in range(ranks):
             if r != me and box_distance(x[i], lower[r], upper[r]) < width[i]:
-                reach[k, r] = True
+                sent_to[k, r] = True
                 count[r + 1] += 1
     for r in range(ranks):
         count[r + 1] += count[r]
     rank, rows = np.empty(count[ranks], np.int64), np.empty(count[ranks], np.int64)
     for k in range(m):
         for r in range(ranks):
-            if reach[k, r]:
+            if sent_to[k, r]:
                 rank[count[r]], rows[count[r]] = r, near[k]
                 count[r] += 1
     return rank, rows
