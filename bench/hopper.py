@@ -1,6 +1,7 @@
 """DEM-only hopper discharge (no flow), pmpm against LIGGGHTS on the same work.
 
     OMP_NUM_THREADS=1 .venv/bin/python bench/hopper.py [N [SIM_TIME [DT]]] [--ranks 1,2] [--repeat 3] [--no-peer]
+                                                       [--one-core]
     # defaults: 10000 particles, 1.0 s, 2e-3 s, 1 and 2 ranks, each timed 3 times, LIGGGHTS too
 
 The peer's geometry and particles (../shared/peers/liggghts_hopper.sh): conical hopper, orifice D0 =
@@ -23,6 +24,10 @@ which the peer script installs with apt-get if missing. On several ranks each ra
 particles in its box (docs/collisions.md, "Particles owned by ranks"); the fill and a 5-step untimed
 discharge on each rank count compile the contact kernels (numba) once, the timed runs load them from
 numba's cache (in a fresh clone, compiling inside the timed runs made them 11–14 s slower).
+With ``--one-core`` the discharge is timed once more on each rank count with every rank on one core
+(``taskset``; a waiting rank yields the core): its time loop is then the ranks' work added up, and
+the ratio to one rank's says what several ranks do beyond one, apart from the waits that the other
+core's jitter causes (docs/collisions.md, "Twentieth session").
 """
 import argparse
 import json
@@ -62,12 +67,18 @@ friction = 0.3
 """
 
 
-def pmpm(folder, ranks, restart=None, label="", **values):
+def pmpm(folder, ranks, restart=None, label="", one_core=False, **values):
+    """Run pmpm on ``ranks`` ranks (with ``one_core``, every rank on core 0, a waiting rank yielding
+    it: the wall time is then the ranks' work added up); returns the wall seconds, the summary and
+    the output folder."""
     values.setdefault("output_every", values["end_time"])
     values.setdefault("checkpoint", "")
     (folder / "case.toml").write_text(CASE.format(**values))
     flags = ["--oversubscribe", "--quiet"] + (["--allow-run-as-root"] if os.geteuid() == 0 else [])
-    command = ["mpirun", *flags, "-n", str(ranks), str(ROOT / ".venv/bin/python"), "-m", "pmpm", str(folder),
+    pinned = []
+    if one_core:
+        pinned, flags = ["taskset", "-c", "0"], flags + ["--bind-to", "none", "--mca", "mpi_yield_when_idle", "1"]
+    command = [*pinned, "mpirun", *flags, "-n", str(ranks), str(ROOT / ".venv/bin/python"), "-m", "pmpm", str(folder),
                "--quiet", "--output", str(folder / f"out{ranks}_{values['orifice']}{label}")]
     if restart is not None:
         command += ["--restart", str(restart)]
@@ -97,6 +108,24 @@ def steady_rate(csv, start) -> float:
     return (counts[first] - counts[-1]) / (times[-1] - times[first])
 
 
+def work_done(folder, checkpoint, rank_counts, repeat, sim_time, dt) -> None:
+    """The discharge's time loop with every rank on one core, the rank counts taking turns: its
+    wall time is then the work of all ranks added up (their waits yield the core), so the ratio to
+    one rank's is what several ranks do beyond one, whatever the other core's jitter, and
+    ranks × one rank's loop / that loop is the speed-up the ranks would reach with no waits."""
+    loops = {ranks: [] for ranks in rank_counts}
+    for ranks in [ranks for _ in range(repeat) for ranks in rank_counts]:
+        _, summary, _ = pmpm(folder, ranks, restart=checkpoint, label="_one_core", one_core=True,
+                             end_time=FILL_TIME + sim_time, dt=dt, orifice="outlet", particles="loose.txt")
+        loops[ranks].append(summary["wall_seconds"]["total"])
+    work = {ranks: float(np.median(times)) for ranks, times in loops.items()}
+    for ranks, times in loops.items():
+        print(f"pmpm ranks={ranks} on one core: time loop median {work[ranks]:.1f} s "
+              f"({', '.join(f'{t:.1f}' for t in times)})"
+              + (f": the ranks' work {work[ranks] / work[1]:.2f} x one rank's, speed-up with no waits "
+                 f"{ranks * work[1] / work[ranks]:.2f}" if ranks > 1 and work.get(1) else ""))
+
+
 def main():
     parser = argparse.ArgumentParser(description="DEM hopper discharge, pmpm against LIGGGHTS")
     parser.add_argument("count", nargs="?", type=int, default=10000)
@@ -105,6 +134,8 @@ def main():
     parser.add_argument("--ranks", default="1,2")
     parser.add_argument("--repeat", type=int, default=3)
     parser.add_argument("--no-peer", action="store_true")
+    parser.add_argument("--one-core", action="store_true",
+                        help="also time each rank count with every rank on one core: the work the ranks do")
     args = parser.parse_args()
     count, sim_time, dt, repeat = args.count, args.sim_time, args.dt, args.repeat
     rank_counts = [int(n) for n in args.ranks.split(",")]
@@ -163,6 +194,8 @@ def main():
         loop = {ranks: float(np.median(times)) for ranks, times in loops.items()}
         print(f"pmpm speed-up 1 -> 2 ranks (medians): {results[1] / results[2]:.2f} "
               f"(the time loop alone: {loop[1]:.1f} / {loop[2]:.1f} s, {loop[1] / loop[2]:.2f})")
+    if args.one_core:
+        work_done(folder, checkpoint, rank_counts, repeat, sim_time, dt)
     if args.no_peer:
         return
     if not PEER.exists():
