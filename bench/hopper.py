@@ -19,7 +19,7 @@ step, and on several ranks the most particles a rank owned and held as ghosts an
 sent in a contact step; then the LIGGGHTS peer (Hertz contacts at dt = 2e-5 s) run in the same
 invocation, the time-to-solution ratio pmpm/LIGGGHTS and LIGGGHTS's own speed-up from 1 to 2 ranks
 (what a second rank gains on this machine at that time: on a shared machine it moves by tens of per
-cent from one day to the next, docs/collisions.md, "Sixteenth session"). Needs the peer's Debian package (liggghts),
+cent from one day to the next, docs/collisions_log.md, "Sixteenth session"). Needs the peer's Debian package (liggghts),
 which the peer script installs with apt-get if missing. On several ranks each rank owns the
 particles in its box (docs/collisions.md, "Particles owned by ranks"); the fill and a 5-step untimed
 discharge on each rank count compile the contact kernels (numba) once, the timed runs load them from
@@ -27,7 +27,7 @@ numba's cache (in a fresh clone, compiling inside the timed runs made them 11–
 With ``--one-core`` the discharge is timed once more on each rank count with every rank on one core
 (``taskset``; a waiting rank yields the core): its time loop is then the ranks' work added up, and
 the ratio to one rank's says what several ranks do beyond one, apart from the waits that the other
-core's jitter causes (docs/collisions.md, "Twentieth session").
+core's jitter causes (docs/collisions_log.md, "Twentieth session").
 """
 import argparse
 import json

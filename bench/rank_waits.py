@@ -10,7 +10,7 @@ themselves (their messages are sent from compiled code, ``pmpm.collisions.block`
 time, the seconds spent in each kind of call and the rest, its busy time. A rank that waits much
 longer than another is waiting for it: the difference of their busy times is the imbalance,
 measured without a profiler (which slows the ranks unevenly) and without the noise of wall times
-that vary by tens of per cent from one minute to the next on a shared machine (docs/collisions.md,
+that vary by tens of per cent from one minute to the next on a shared machine (docs/collisions_log.md,
 "Eighth session").
 """
 from __future__ import annotations

@@ -107,7 +107,7 @@ def leave(status: int) -> None:
     """End the command with ``status``. Every output file is closed by now; PETSc is finalized (its
     -log_view report printed, and MPI finalized with it) and the streams flushed, then the process
     ends at once: the interpreter's own teardown of the compiled kernels would take another 0.2 s
-    of every run (docs/collisions.md, "Fourteenth session")."""
+    of every run (docs/collisions_log.md, "Fourteenth session")."""
     if "petsc4py.PETSc" not in sys.modules:   # (render: no PETSc, nothing compiled)
         sys.exit(status)
     from mpi4py import MPI

@@ -1,6 +1,6 @@
 """MPI's messages called from compiled kernels: the block sweeps (``block``) pass shadow copies
 between ranks after every sweep, 10,000 times a hopper discharge, and the Python around each call
-through mpi4py cost more than the message (docs/collisions.md, "Sixteenth session").
+through mpi4py cost more than the message (docs/collisions_log.md, "Sixteenth session").
 
 A kernel calls the MPI library's C functions by name (numba's ``ExternalFunction``: cached like any
 kernel, the symbol resolved when the kernel is loaded, in the library mpi4py has loaded). The

@@ -50,7 +50,7 @@ class ContactRecord:
     def merged(cls, pairs: "ContactRecord", walls: "ContactRecord | None") -> "ContactRecord":
         """The particle pairs and the wall contacts (second: the world row, past every particle),
         each sorted by (first, second, triangle), as one record in that order: each wall contact
-        goes after the pairs of its particle (a merge, not a sort of the whole: docs/collisions.md,
+        goes after the pairs of its particle (a merge, not a sort of the whole: docs/collisions_log.md,
         "Thirteenth session")."""
         if walls is None or len(walls) == 0:
             return pairs
