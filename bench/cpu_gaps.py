@@ -17,7 +17,6 @@ import argparse
 import ctypes
 import os
 import sys
-import time
 from multiprocessing import Process, Queue
 
 import numpy as np
@@ -25,8 +24,8 @@ from numba import njit
 
 EDGES_US = (100, 1000, 3000, 10000, 30000)   # the gaps' length classes, µs
 
-_librt = ctypes.CDLL(None)
-_clock_gettime = _librt.clock_gettime
+_libc = ctypes.CDLL(None)
+_clock_gettime = _libc.clock_gettime
 _clock_gettime.argtypes = (ctypes.c_int, ctypes.c_void_p)
 
 

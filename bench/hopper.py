@@ -26,8 +26,9 @@ discharge on each rank count compile the contact kernels (numba) once, the timed
 numba's cache (in a fresh clone, compiling inside the timed runs made them 11–14 s slower).
 With ``--one-core`` the discharge is timed once more on each rank count with every rank on one core
 (``taskset``; a waiting rank yields the core): its time loop is then the ranks' work added up, and
-the ratio to one rank's says what several ranks do beyond one, apart from the waits that the other
-core's jitter causes (docs/collisions_log.md, "Twentieth session").
+the ratio to one rank's says what several ranks do beyond one, apart from the waits that the
+other core's stops cause (at most: on one core the ranks also switch at each exchange and refill
+their caches; docs/collisions_log.md, "Twentieth session").
 """
 import argparse
 import json
@@ -111,8 +112,8 @@ def steady_rate(csv, start) -> float:
 def work_done(folder, checkpoint, rank_counts, repeat, sim_time, dt) -> None:
     """The discharge's time loop with every rank on one core, the rank counts taking turns: its
     wall time is then the work of all ranks added up (their waits yield the core), so the ratio to
-    one rank's is what several ranks do beyond one, whatever the other core's jitter, and
-    ranks × one rank's loop / that loop is the speed-up the ranks would reach with no waits."""
+    one rank's is (at most) what several ranks do beyond one, whatever the other core's stops, and
+    ranks × one rank's loop / that loop the (least) speed-up the ranks would reach with no waits."""
     loops = {ranks: [] for ranks in rank_counts}
     for ranks in [ranks for _ in range(repeat) for ranks in rank_counts]:
         _, summary, _ = pmpm(folder, ranks, restart=checkpoint, label="_one_core", one_core=True,
@@ -122,7 +123,7 @@ def work_done(folder, checkpoint, rank_counts, repeat, sim_time, dt) -> None:
     for ranks, times in loops.items():
         print(f"pmpm ranks={ranks} on one core: time loop median {work[ranks]:.1f} s "
               f"({', '.join(f'{t:.1f}' for t in times)})"
-              + (f": the ranks' work {work[ranks] / work[1]:.2f} x one rank's, speed-up with no waits "
+              + (f": the ranks' work {work[ranks] / work[1]:.2f} x one rank's, speed-up with no waits at least "
                  f"{ranks * work[1] / work[ranks]:.2f}" if ranks > 1 and work.get(1) else ""))
 
 
