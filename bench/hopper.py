@@ -109,22 +109,28 @@ def steady_rate(csv, start) -> float:
     return (counts[first] - counts[-1]) / (times[-1] - times[first])
 
 
-def work_done(folder, checkpoint, rank_counts, repeat, sim_time, dt) -> None:
+def work_done(folder, rank_counts, repeat, discharge: dict) -> None:
     """The discharge's time loop with every rank on one core, the rank counts taking turns: its
     wall time is then the work of all ranks added up (their waits yield the core), so the ratio to
     one rank's is (at most) what several ranks do beyond one, whatever the other core's stops, and
     ranks × one rank's loop / that loop the (least) speed-up the ranks would reach with no waits."""
     loops = {ranks: [] for ranks in rank_counts}
-    for ranks in [ranks for _ in range(repeat) for ranks in rank_counts]:
-        _, summary, _ = pmpm(folder, ranks, restart=checkpoint, label="_one_core", one_core=True,
-                             end_time=FILL_TIME + sim_time, dt=dt, orifice="outlet", particles="loose.txt")
+    for ranks in turns(rank_counts, repeat):
+        _, summary, _ = pmpm(folder, ranks, label="_one_core", one_core=True, **discharge)
         loops[ranks].append(summary["wall_seconds"]["total"])
     work = {ranks: float(np.median(times)) for ranks, times in loops.items()}
     for ranks, times in loops.items():
+        against_one = ""
+        if ranks > 1 and work.get(1):
+            against_one = (f": the ranks' work {work[ranks] / work[1]:.2f} x one rank's, speed-up with no waits "
+                           f"at least {ranks * work[1] / work[ranks]:.2f}")
         print(f"pmpm ranks={ranks} on one core: time loop median {work[ranks]:.1f} s "
-              f"({', '.join(f'{t:.1f}' for t in times)})"
-              + (f": the ranks' work {work[ranks] / work[1]:.2f} x one rank's, speed-up with no waits at least "
-                 f"{ranks * work[1] / work[ranks]:.2f}" if ranks > 1 and work.get(1) else ""))
+              f"({', '.join(f'{t:.1f}' for t in times)}){against_one}")
+
+
+def turns(rank_counts, repeat) -> list:
+    """Each rank count ``repeat`` times, the rank counts taking turns (the machine's hour shared alike)."""
+    return [ranks for _ in range(repeat) for ranks in rank_counts]
 
 
 def main():
@@ -160,10 +166,10 @@ def main():
              particles="loose.txt", output_every=5 * dt)
     results = {ranks: [] for ranks in rank_counts}
     loops = {ranks: [] for ranks in rank_counts}   # the time loop alone (summary.json's total)
-    for ranks in [ranks for _ in range(repeat) for ranks in rank_counts]:   # the rank counts take turns
-        # the discharge continues the fill's checkpoint with the orifice open
-        seconds, summary, out = pmpm(folder, ranks, restart=checkpoint, end_time=FILL_TIME + sim_time, dt=dt,
-                                     orifice="outlet", particles="loose.txt", output_every=sim_time / 10)
+    # the discharge continues the fill's checkpoint with the orifice open
+    discharge = dict(restart=checkpoint, end_time=FILL_TIME + sim_time, dt=dt, orifice="outlet", particles="loose.txt")
+    for ranks in turns(rank_counts, repeat):
+        seconds, summary, out = pmpm(folder, ranks, output_every=sim_time / 10, **discharge)
         collisions = dict(summary["diagnostics"].get("collisions", {}))
         if carries_counts(checkpoint):  # the discharge's counts then start from the fill's
             carried = fill["diagnostics"].get("collisions", {})
@@ -196,7 +202,7 @@ def main():
         print(f"pmpm speed-up 1 -> 2 ranks (medians): {results[1] / results[2]:.2f} "
               f"(the time loop alone: {loop[1]:.1f} / {loop[2]:.1f} s, {loop[1] / loop[2]:.2f})")
     if args.one_core:
-        work_done(folder, checkpoint, rank_counts, repeat, sim_time, dt)
+        work_done(folder, rank_counts, repeat, discharge)
     if args.no_peer:
         return
     if not PEER.exists():
