@@ -1,6 +1,6 @@
-"""How often this machine stops a core: each process spins reading the clock and adds up the gaps.
+"""How often this machine stops a core, and how its cores' pace varies: what ranks in step lose.
 
-    .venv/bin/python bench/cpu_gaps.py [SECONDS] [--cores 0,1] [--gap-us 20]
+    .venv/bin/python bench/cpu_gaps.py [SECONDS] [--cores 0,1] [--gap-us 20] [--window-ms 30] [--pace-only]
 
 One process per core in ``--cores`` (pinned, all at once; then the first core alone) reads a
 monotonic clock in a compiled loop for SECONDS (default 20) and counts every gap between two
@@ -8,10 +8,18 @@ readings longer than ``--gap-us`` microseconds: the time the core ran something 
 the kernel, another process, or, in a virtual machine, the host). Printed per core: the gaps, the
 share of the time lost, and how that time splits by the gaps' length.
 
+Then the pace: one process per core (all at once; then the first core alone) repeats a fixed
+compiled piece of work (sums over an array read in a scattered order, as the contact sweeps read
+their bodies; about 3 ms a piece) for SECONDS and clocks each piece. Printed per core: how much slower than its fastest tenth
+it ran on average, and the share of ``--window-ms`` windows in which it ran 1.2 × slower or more;
+then what cores in step lose: over the same windows, the work of the slower core of each window
+against the mean of the cores' (ranks that wait for each other at every exchange advance at the
+slower one's pace; one rank at its own).
+
 Why it matters to pmpm: ranks that exchange messages every fraction of a millisecond (the block
-sweeps' 20 messages a contact step) wait for each other's stops, so a run on several ranks loses
-the stops of every core it uses, where one rank loses its own only (docs/collisions.md, "Speed on
-2 ranks").
+sweeps' 20 messages a contact step) wait for each other's stops and slow spells, so a run on
+several ranks loses those of every core it uses, where one rank loses its own only
+(docs/collisions.md, "Speed on 2 ranks").
 """
 import argparse
 import ctypes
@@ -77,16 +85,84 @@ def report(label: str, rows: list, seconds: float, gap_us: float) -> None:
               + ", ".join(f"{name} {value:.3f} s" for name, value in zip(classes, lost)), flush=True)
 
 
+PIECE = 300_000      # array entries a piece of work reads, 10 times over (about 3 ms here)
+FAST_SHARE = 0.1     # a core's best pace: the mean of its fastest tenth of the pieces
+SLOW = 1.2           # a window counts as slow at this many times the core's best time or more
+
+
+@njit(cache=True)
+def _pieces(clock, timespec, seconds, values, order):
+    """Repeat the piece of work for ``seconds``; returns the start and each piece's end (s,
+    CLOCK_MONOTONIC: the same clock in every process)."""
+    ends = np.empty(1_000_000)
+    clock(1, timespec.ctypes.data)
+    start = now = timespec[0] + 1e-9 * timespec[1]
+    total, count = 0.0, 0
+    while now - start < seconds and count < len(ends):
+        for _ in range(10):
+            for i in range(len(order)):
+                total += values[order[i]] * 1.0000001
+        clock(1, timespec.ctypes.data)
+        now = timespec[0] + 1e-9 * timespec[1]
+        ends[count] = now
+        count += 1
+    ends[0] += 0.0 * total   # (the sums used: the compiler cannot drop them)
+    return start, ends[:count]
+
+
+def pace_on(core: int, seconds: float, results: Queue) -> None:
+    os.sched_setaffinity(0, {core})
+    order = (np.arange(PIECE, dtype=np.int64) * 7919) % PIECE
+    start, ends = _pieces(_clock_gettime, np.zeros(2, np.int64), seconds, np.linspace(0.0, 1.0, PIECE), order)
+    results.put((core, start, ends))
+
+
+def pace(label: str, cores, seconds: float, window: float) -> None:
+    """The cores' pace and what cores in step lose (see the module's docstring)."""
+    results = Queue()
+    workers = [Process(target=pace_on, args=(core, seconds, results)) for core in cores]
+    for worker in workers:
+        worker.start()
+    rows = sorted(results.get() for _ in workers)
+    for worker in workers:
+        worker.join()
+    begin, end = max(start for _, start, _ in rows), min(ends[-1] for _, _, ends in rows)
+    grid = np.arange(begin, end, window)
+    done = []   # per core, the pieces done in each window (fractions at the edges)
+    for core, start, ends in rows:
+        durations = np.diff(np.concatenate([[start], ends]))
+        best = np.sort(durations)[:max(1, int(FAST_SHARE * len(durations)))].mean()
+        work = np.diff(np.interp(grid, np.concatenate([[start], ends]), np.arange(len(ends) + 1)))
+        done.append(work)
+        slow = np.mean(work < window / (SLOW * best))
+        print(f"pace, {label}: core {core}: {len(ends)} pieces of {1e3 * best:.2f} ms at best; on average "
+              f"{100 * (durations.mean() / best - 1):.1f} % slower than that; {100 * slow:.1f} % of its "
+              f"{1e3 * window:g} ms windows {SLOW:g} x slower or more", flush=True)
+    if len(rows) < 2:
+        return
+    done = np.array(done)
+    slower, mean = done.min(axis=0).sum(), done.mean(axis=0).sum()
+    print(f"pace, {label}: cores in step ({len(grid) - 1} windows of {1e3 * window:g} ms): the slower core's work "
+          f"{100 * (1 - slower / mean):.1f} % below the cores' mean", flush=True)
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("seconds", nargs="?", type=float, default=20.0)
     parser.add_argument("--cores", default="0,1")
     parser.add_argument("--gap-us", type=float, default=20.0)
+    parser.add_argument("--window-ms", type=float, default=30.0)
+    parser.add_argument("--pace-only", action="store_true", help="the pace with every core busy, not the gaps")
     args = parser.parse_args()
     cores = [int(c) for c in args.cores.split(",")]
-    _spin(_clock_gettime, np.zeros(2, np.int64), 0.01, 1.0, np.array(EDGES_US) * 1e-6)   # compiled once, here
-    report("all busy", measure(cores, args.seconds, args.gap_us), args.seconds, args.gap_us)
-    report("alone", measure(cores[:1], args.seconds, args.gap_us), args.seconds, args.gap_us)
+    if not args.pace_only:
+        _spin(_clock_gettime, np.zeros(2, np.int64), 0.01, 1.0, np.array(EDGES_US) * 1e-6)   # compiled once, here
+        report("all busy", measure(cores, args.seconds, args.gap_us), args.seconds, args.gap_us)
+        report("alone", measure(cores[:1], args.seconds, args.gap_us), args.seconds, args.gap_us)
+    _pieces(_clock_gettime, np.zeros(2, np.int64), 0.01, np.zeros(2), np.zeros(2, np.int64))   # compiled once, here
+    pace("all busy", cores, args.seconds, args.window_ms * 1e-3)
+    if not args.pace_only:
+        pace("alone", cores[:1], args.seconds, args.window_ms * 1e-3)
 
 
 if __name__ == "__main__":

@@ -28,7 +28,9 @@ With ``--one-core`` the discharge is timed once more on each rank count with eve
 (``taskset``; a waiting rank yields the core): its time loop is then the ranks' work added up, and
 the ratio to one rank's says what several ranks do beyond one, apart from the waits that the
 other core's stops cause (at most: on one core the ranks also switch at each exchange and refill
-their caches; docs/collisions_log.md, "Twentieth session").
+their caches; docs/collisions_log.md, "Twentieth session"); then ``bench/cpu_gaps.py --pace-only``
+measures, for 20 s, what two cores in step lose to each other's slow spells on this machine in that
+hour (docs/collisions.md, "Speed on 2 ranks").
 """
 import argparse
 import json
@@ -119,6 +121,10 @@ def work_done(folder, rank_counts, repeat, discharge: dict) -> None:
         _, summary, _ = pmpm(folder, ranks, label="_one_core", one_core=True, **discharge)
         loops[ranks].append(summary["wall_seconds"]["total"])
     work = {ranks: float(np.median(times)) for ranks, times in loops.items()}
+    # and the machine's share: what two cores in step lose to each other's slow spells, this hour
+    pace = subprocess.run([sys.executable, str(ROOT / "bench" / "cpu_gaps.py"), "20", "--pace-only"],
+                          capture_output=True, text=True)
+    print(pace.stdout.strip() or f"bench/cpu_gaps.py failed: {pace.stderr.strip()[-300:]}")
     for ranks, times in loops.items():
         against_one = ""
         if ranks > 1 and work.get(1):

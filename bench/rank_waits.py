@@ -11,7 +11,10 @@ time, the seconds spent in each kind of call and the rest, its busy time. A rank
 longer than another is waiting for it: the difference of their busy times is the imbalance,
 measured without a profiler (which slows the ranks unevenly) and without the noise of wall times
 that vary by tens of per cent from one minute to the next on a shared machine (docs/collisions_log.md,
-"Eighth session").
+"Eighth session"). Last, the sweeps step by step: how far the busiest rank's sweeps (waits aside)
+lie above the ranks' mean, summed over the dense steps (the time the ranks in step lose there), and
+how much of it the ranks' contact counts explain; the rest is the pace of their cores
+(``bench/cpu_gaps.py``).
 """
 from __future__ import annotations
 
@@ -19,6 +22,7 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 from mpi4py import MPI
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
@@ -54,14 +58,35 @@ ClockedRequest.Waitall = staticmethod(clocked("Waitall", MPI.Request.Waitall))
 
 
 def clocked_sweeps(sweeps):
-    """The block sweeps' kernel, the seconds it waited for other ranks added to the clock."""
+    """The block sweeps' kernel, the seconds it waited for other ranks added to the clock; each
+    call's seconds, waits and contacts kept in ``sweep_calls``."""
     def timed(*args):
+        start = time.perf_counter()
         done, waited = sweeps(*args)
         entry = clock.setdefault("sweeps", [0, 0.0])
         entry[0] += 1
         entry[1] += waited
+        sweep_calls.append((time.perf_counter() - start, waited, len(args[0][0]) + len(args[1][0])))
         return done, waited
     return timed
+
+
+sweep_calls: list = []   # per call (a dense step): seconds, seconds waited, contacts (border and inner)
+
+
+def sweeps_in_step(calls: list) -> str:
+    """What the ranks' sweeps lose to each other, step by step: each dense step's sweeps last as
+    long as the busiest rank's (waits aside), so the sum over steps of the busiest rank's busy
+    time less the ranks' mean is lost. The part of it the contacts explain (each rank's contacts at
+    the run's mean time per contact) is the imbalance of the work; the rest is the ranks' pace."""
+    busy = np.array([[seconds - waited for seconds, waited, _ in rank] for rank in calls]).T    # (steps, ranks)
+    contacts = np.array([[count for _, _, count in rank] for rank in calls], float).T
+    per_contact = busy.sum() / max(contacts.sum(), 1.0)
+    lost = (busy.max(axis=1) - busy.mean(axis=1)).sum()
+    explained = per_contact * (contacts.max(axis=1) - contacts.mean(axis=1)).sum()
+    return (f"the sweeps, step by step: the busiest rank {lost:.2f} s above the ranks' mean over {len(busy)} "
+            f"steps ({100 * lost / busy.mean(axis=1).sum():.1f} %); the contacts' imbalance explains "
+            f"{explained:.2f} s of it, the ranks' pace the rest")
 
 
 def main() -> None:
@@ -81,6 +106,7 @@ def main() -> None:
         raise SystemExit(status)
     wall = time.perf_counter() - start
     ranks = world.gather((wall, dict(clock)), root=0)
+    sweeps = world.gather(sweep_calls, root=0)
     if world.rank != 0:
         return
     names = sorted({name for _, calls in ranks for name in calls})
@@ -92,6 +118,8 @@ def main() -> None:
     busy = [wall - sum(seconds for _, seconds in calls.values()) for wall, calls in ranks]
     print(f"busiest rank {max(range(len(busy)), key=busy.__getitem__)}: {max(busy) - min(busy):.2f} s busier "
           f"than the least busy; calls per rank: " + ", ".join(f"{n} {ranks[0][1].get(n, (0,))[0]}" for n in names))
+    if len({len(rank) for rank in sweeps}) == 1 and sweeps[0]:
+        print(sweeps_in_step(sweeps))
 
 
 if __name__ == "__main__":
