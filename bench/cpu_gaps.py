@@ -65,9 +65,11 @@ def spin_on(core: int, seconds: float, gap_us: float, results: Queue) -> None:
     results.put((core, count, lost))
 
 
-def measure(cores, seconds: float, gap_us: float) -> list:
+def on_cores(target, cores, *args) -> list:
+    """``target(core, *args, results)`` in one process per core, all at once; what each put in
+    ``results``, sorted (by core: each result starts with it)."""
     results = Queue()
-    workers = [Process(target=spin_on, args=(core, seconds, gap_us, results)) for core in cores]
+    workers = [Process(target=target, args=(core, *args, results)) for core in cores]
     for worker in workers:
         worker.start()
     rows = sorted(results.get() for _ in workers)
@@ -119,20 +121,15 @@ def pace_on(core: int, seconds: float, results: Queue) -> None:
 
 def pace(label: str, cores, seconds: float, window: float) -> None:
     """The cores' pace and what cores in step lose (see the module's docstring)."""
-    results = Queue()
-    workers = [Process(target=pace_on, args=(core, seconds, results)) for core in cores]
-    for worker in workers:
-        worker.start()
-    rows = sorted(results.get() for _ in workers)
-    for worker in workers:
-        worker.join()
+    rows = on_cores(pace_on, cores, seconds)
     begin, end = max(start for _, start, _ in rows), min(ends[-1] for _, _, ends in rows)
     grid = np.arange(begin, end, window)
     done = []   # per core, the pieces done in each window (fractions at the edges)
     for core, start, ends in rows:
-        durations = np.diff(np.concatenate([[start], ends]))
+        times = np.concatenate([[start], ends])
+        durations = np.diff(times)
         best = np.sort(durations)[:max(1, int(FAST_SHARE * len(durations)))].mean()
-        work = np.diff(np.interp(grid, np.concatenate([[start], ends]), np.arange(len(ends) + 1)))
+        work = np.diff(np.interp(grid, times, np.arange(len(times))))
         done.append(work)
         slow = np.mean(work < window / (SLOW * best))
         print(f"pace, {label}: core {core}: {len(ends)} pieces of {1e3 * best:.2f} ms at best; on average "
@@ -157,8 +154,8 @@ def main():
     cores = [int(c) for c in args.cores.split(",")]
     if not args.pace_only:
         _spin(_clock_gettime, np.zeros(2, np.int64), 0.01, 1.0, np.array(EDGES_US) * 1e-6)   # compiled once, here
-        report("all busy", measure(cores, args.seconds, args.gap_us), args.seconds, args.gap_us)
-        report("alone", measure(cores[:1], args.seconds, args.gap_us), args.seconds, args.gap_us)
+        report("all busy", on_cores(spin_on, cores, args.seconds, args.gap_us), args.seconds, args.gap_us)
+        report("alone", on_cores(spin_on, cores[:1], args.seconds, args.gap_us), args.seconds, args.gap_us)
     _pieces(_clock_gettime, np.zeros(2, np.int64), 0.01, np.zeros(2), np.zeros(2, np.int64))   # compiled once, here
     pace("all busy", cores, args.seconds, args.window_ms * 1e-3)
     if not args.pace_only:

@@ -121,10 +121,6 @@ def work_done(folder, rank_counts, repeat, discharge: dict) -> None:
         _, summary, _ = pmpm(folder, ranks, label="_one_core", one_core=True, **discharge)
         loops[ranks].append(summary["wall_seconds"]["total"])
     work = {ranks: float(np.median(times)) for ranks, times in loops.items()}
-    # and the machine's share: what two cores in step lose to each other's slow spells, this hour
-    pace = subprocess.run([sys.executable, str(ROOT / "bench" / "cpu_gaps.py"), "20", "--pace-only"],
-                          capture_output=True, text=True)
-    print(pace.stdout.strip() or f"bench/cpu_gaps.py failed: {pace.stderr.strip()[-300:]}")
     for ranks, times in loops.items():
         against_one = ""
         if ranks > 1 and work.get(1):
@@ -209,6 +205,10 @@ def main():
               f"(the time loop alone: {loop[1]:.1f} / {loop[2]:.1f} s, {loop[1] / loop[2]:.2f})")
     if args.one_core:
         work_done(folder, rank_counts, repeat, discharge)
+        # and the machine's share: what two cores in step lose to each other's slow spells, this hour
+        pace = subprocess.run([sys.executable, str(ROOT / "bench" / "cpu_gaps.py"), "20", "--pace-only"],
+                              capture_output=True, text=True)
+        print(pace.stdout.strip() or f"bench/cpu_gaps.py failed: {pace.stderr.strip()[-300:]}")
     if args.no_peer:
         return
     if not PEER.exists():
