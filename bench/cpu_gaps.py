@@ -38,16 +38,21 @@ _clock_gettime.argtypes = (ctypes.c_int, ctypes.c_void_p)
 
 
 @njit(cache=True)
+def _now(clock, timespec):
+    """The monotonic clock (s), read by the C library's ``clock`` into ``timespec``."""
+    clock(1, timespec.ctypes.data)            # CLOCK_MONOTONIC
+    return timespec[0] + 1e-9 * timespec[1]
+
+
+@njit(cache=True)
 def _spin(clock, timespec, seconds, gap, edges):
     """Read the clock for ``seconds``; returns the gaps longer than ``gap`` (s) and their time per
     length class (``edges``, s: the classes below each edge, then above the last)."""
     lost = np.zeros(len(edges) + 1)
     count = 0
-    clock(1, timespec.ctypes.data)            # CLOCK_MONOTONIC
-    start = last = timespec[0] + 1e-9 * timespec[1]
+    start = last = _now(clock, timespec)
     while last - start < seconds:
-        clock(1, timespec.ctypes.data)
-        now = timespec[0] + 1e-9 * timespec[1]
+        now = _now(clock, timespec)
         if now - last > gap:
             count += 1
             k = 0
@@ -97,15 +102,13 @@ def _pieces(clock, timespec, seconds, values, order):
     """Repeat the piece of work for ``seconds``; returns the start and each piece's end (s,
     CLOCK_MONOTONIC: the same clock in every process)."""
     ends = np.empty(1_000_000)
-    clock(1, timespec.ctypes.data)
-    start = now = timespec[0] + 1e-9 * timespec[1]
+    start = now = _now(clock, timespec)
     total, count = 0.0, 0
     while now - start < seconds and count < len(ends):
         for _ in range(10):
             for i in range(len(order)):
                 total += values[order[i]] * 1.0000001
-        clock(1, timespec.ctypes.data)
-        now = timespec[0] + 1e-9 * timespec[1]
+        now = _now(clock, timespec)
         ends[count] = now
         count += 1
     ends[0] += 0.0 * total   # (the sums used: the compiler cannot drop them)
