@@ -19,9 +19,8 @@ from __future__ import annotations
 import numpy as np
 
 from . import jit
-from ..arrays import cross, summed
 from .search import wall_arrays
-from .settings import COLD_SWEEPS, CONTACT_TOL, ENERGY_TOL, SWEEP_TOL
+from .settings import COLD_SWEEPS, ENERGY_TOL, SWEEP_TOL
 from .stats import CLAMPS, PAIR, RESTING, SWEEPS, WALL
 
 
@@ -43,7 +42,7 @@ def dense_step(bodies, record, warm_n, warm_t, settings, dt, walls, kernels, cou
                                         deposition, changed, counters)
     v, w, inv_m, inv_i = bodies.v, bodies.w, bodies.inv_m, bodies.inv_i
     normal, gap = record.normal, record.gap
-    closing, touching, hits, target, hit_time = targets(bodies, record, r_first, r_second, settings, dt)
+    touching, hits, target, hit_time, closing_speed = targets(bodies, record, rows, r_first, r_second, settings, dt)
     lam_n, lam_t = np.zeros(m), np.zeros((m, 3))
     lam_n[rows], lam_t[rows] = warm_n[rows], warm_t[rows]
     remembered = bool(lam_n.any())
@@ -58,7 +57,7 @@ def dense_step(bodies, record, warm_n, warm_t, settings, dt, walls, kernels, cou
         impulses.warm_start(rows, first, second, normal, r_first, r_second, record.friction, inv_m, inv_i, v, w,
                             lam_n, lam_t)
     budget = settings.dense_sweeps if remembered else COLD_SWEEPS * settings.dense_sweeps
-    scale = max(float(np.abs(closing[rows]).max(initial=0.0)), settings.rest_speed, 1e-300)
+    scale = max(closing_speed, settings.rest_speed, 1e-300)
     tol = SWEEP_TOL * settings.rest_speed if settings.rest_speed > 0 else 1e-12 * scale
     sweeps = impulses.sweep(rows, first, second, normal, r_first, r_second, record.wall_velocity, target,
                             record.friction, inv_m, inv_i, v, w, lam_n, lam_t, budget, tol)
@@ -86,19 +85,14 @@ def bodies_in(rows: np.ndarray, first: np.ndarray, second: np.ndarray, n: int) -
     return np.flatnonzero(touched[:n])
 
 
-def targets(bodies, record, r_first, r_second, settings, dt) -> tuple:
-    """Per contact of ``record``: the closing speed at the step's start (m/s), whether it touches,
-    whether it is an impact, the normal velocity it is driven to (m/s), and the time inside the
-    step its impact happens (s; 0 for a touching one and for the others)."""
-    v, w, first, second, normal, gap = bodies.v, bodies.w, record.first, record.second, record.normal, record.gap
-    u = (v[first] - v[second] - record.wall_velocity
-         - cross(r_first[:, None] * w[first] + r_second[:, None] * w[second], normal))
-    closing = -(u * normal).sum(1)
-    touching = gap <= CONTACT_TOL * r_first
-    hits = (closing > settings.rest_speed) & (touching | (record.time <= dt))
-    target = np.where(hits, record.restitution * closing, -np.maximum(gap, 0.0) / dt)
-    hit_time = np.where(hits & ~touching & np.isfinite(record.time), record.time, 0.0)
-    return closing, touching, hits, target, hit_time
+def targets(bodies, record, rows, r_first, r_second, settings, dt) -> tuple:
+    """Per contact of ``rows`` (the others left False and 0): whether it touches, whether it is an
+    impact, the normal velocity it is driven to (m/s), the time inside the step its impact
+    happens (s; 0 for a touching one and for the others); and the largest closing speed over
+    ``rows`` at the step's start (m/s). Compiled: ``dense_kernels.targets``."""
+    return jit.kernels().dense_kernels.targets(rows, record.first, record.second, record.normal, record.gap,
+                                               record.time, record.restitution, record.wall_velocity, r_first,
+                                               r_second, bodies.v, bodies.w, settings.rest_speed, dt)
 
 
 def finish(bodies, record, rows, lam_n, lam_t, v0, touching, hits, hit_time, dt, sweeps, counters, extra, wall_omega,
@@ -106,29 +100,19 @@ def finish(bodies, record, rows, lam_n, lam_t, v0, touching, hits, hit_time, dt,
     """After the solve of ``rows``: rolling friction, every body moved to the step's end, the counts.
     ``wall_omega``: the walls' angular velocities (triangles, 3); ``to_owners`` (on several ranks):
     sums the ghost rows of per-body arrays on their owners."""
-    n, first, second, wall = len(bodies.radius) - 1, record.first, record.second, record.triangle >= 0
-    v, w = bodies.v, bodies.w
+    n, compiled = len(bodies.radius) - 1, jit.kernels().dense_kernels
     # each body's velocity changed at the impulse-weighted time of its contacts (0 touching, t_c
     # for an impact inside the step): before it the body moved at its old velocity
-    strength = np.sqrt(lam_n[rows] ** 2 + (lam_t[rows] ** 2).sum(1))
-    weight = summed(first[rows], strength, n + 1) + summed(second[rows], strength, n + 1)
-    late = (summed(first[rows], strength * hit_time[rows], n + 1)
-            + summed(second[rows], strength * hit_time[rows], n + 1))
+    weight, late = compiled.change_times(rows, record.first, record.second, lam_n, lam_t, hit_time, n)
     if to_owners is not None:
         to_owners(weight[:n], late[:n])
-    changed_at = np.divide(late, weight, out=np.zeros(n + 1), where=weight > 0)
-    displacement = -(v - v0) * changed_at[:, None]
-    size = np.sqrt((lam_t * lam_t).sum(1))
-    sticking = touching & (lam_n > 0) & (size < record.friction * lam_n * (1 - 1e-9))
-    rolling = rows[wall[rows] & (record.rolling_friction[rows] > 0) & sticking[rows]]
-    impulses = jit.kernels().impulses
-    impulses.roll_resistance(rolling, first, record.triangle, record.normal, record.wall_velocity, wall_omega, lam_n,
-                             record.rolling_friction, bodies.inv_m, bodies.inv_i, bodies.radius, v, w)
-    bodies.x += v * dt + displacement
-    active = rows[lam_n[rows] > 0]
-    impact = hits[active]
-    counters[PAIR] += int((impact & ~wall[active]).sum())
-    counters[WALL] += int((impact & wall[active]).sum())
-    counters[RESTING] += int((~impact).sum())
+    contacts = (record.first, record.triangle, record.normal, record.wall_velocity, record.friction,
+                record.rolling_friction)
+    pair, wall, resting = compiled.move_to_end(rows, contacts, lam_n, lam_t, touching, hits, weight, late,
+                                               (bodies.x, bodies.v, bodies.w, bodies.inv_m, bodies.inv_i, bodies.radius),
+                                               v0, wall_omega, dt)
+    counters[PAIR] += pair
+    counters[WALL] += wall
+    counters[RESTING] += resting
     counters[SWEEPS] += sweeps
     extra.update(dense_steps=1, dense_contacts=len(rows))

@@ -196,7 +196,7 @@ def dense_blocks(halo: Halo, bodies, record, rows, warm_n, warm_t, settings, dt,
         deposit(halo, bodies, record, rows, r_first, deposition, kernels, counters)
     v, w, inv_m, inv_i = bodies.v, bodies.w, bodies.inv_m, bodies.inv_i
     normal = record.normal
-    closing, touching, hits, target, hit_time = targets(bodies, record, r_first, r_second, settings, dt)
+    touching, hits, target, hit_time, closing_speed = targets(bodies, record, rows, r_first, r_second, settings, dt)
     solved = np.zeros(m, bool)
     solved[rows] = True
     lam_n, lam_t = np.where(solved, warm_n, 0.0), np.where(solved[:, None], warm_t, 0.0)
@@ -207,7 +207,7 @@ def dense_blocks(halo: Halo, bodies, record, rows, warm_n, warm_t, settings, dt,
     if walls is not None:
         moving = walls.velocity.any(1) | walls.angular_velocity.any(1)
         driven |= wall[rows] & moving[np.maximum(triangle[rows], 0)]
-    scale = max(float(np.abs(closing[rows]).max(initial=0.0)), settings.rest_speed, 1e-300)
+    scale = max(closing_speed, settings.rest_speed, 1e-300)
     tol = SWEEP_TOL * settings.rest_speed if settings.rest_speed > 0 else 1e-12 * scale
     remembered, driven, tol, energy = reduced(comm, max_of=(float(lam_n.any()), float(driven.any()), tol),
                                               sum_of=(impulses.kinetic_energy(owned_members, inv_m, inv_i, v, w),))
