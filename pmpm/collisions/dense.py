@@ -89,10 +89,10 @@ def targets(bodies, record, rows, r_first, r_second, settings, dt) -> tuple:
     """Per contact of ``rows`` (the others left False and 0): whether it touches, whether it is an
     impact, the normal velocity it is driven to (m/s), the time inside the step its impact
     happens (s; 0 for a touching one and for the others); and the largest closing speed over
-    ``rows`` at the step's start (m/s). Compiled: ``dense_kernels.targets``."""
-    return jit.kernels().dense_kernels.targets(rows, record.first, record.second, record.normal, record.gap,
-                                               record.time, record.restitution, record.wall_velocity, r_first,
-                                               r_second, bodies.v, bodies.w, settings.rest_speed, dt)
+    ``rows`` at the step's start (m/s). Compiled: ``step_arrays.targets``."""
+    return jit.kernels().step_arrays.targets(rows, record.first, record.second, record.normal, record.gap,
+                                             record.time, record.restitution, record.wall_velocity, r_first,
+                                             r_second, bodies.v, bodies.w, settings.rest_speed, dt)
 
 
 def finish(bodies, record, rows, lam_n, lam_t, v0, touching, hits, hit_time, dt, sweeps, counters, extra, wall_omega,
@@ -100,7 +100,7 @@ def finish(bodies, record, rows, lam_n, lam_t, v0, touching, hits, hit_time, dt,
     """After the solve of ``rows``: rolling friction, every body moved to the step's end, the counts.
     ``wall_omega``: the walls' angular velocities (triangles, 3); ``to_owners`` (on several ranks):
     sums the ghost rows of per-body arrays on their owners."""
-    n, compiled = len(bodies.radius) - 1, jit.kernels().dense_kernels
+    n, compiled = len(bodies.radius) - 1, jit.kernels().step_arrays
     # each body's velocity changed at the impulse-weighted time of its contacts (0 touching, t_c
     # for an impact inside the step): before it the body moved at its old velocity
     weight, late = compiled.change_times(rows, record.first, record.second, lam_n, lam_t, hit_time, n)

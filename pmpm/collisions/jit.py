@@ -18,8 +18,8 @@ from pathlib import Path
 from types import SimpleNamespace
 
 HERE = Path(__file__).resolve().parent
-COMPILED = ("block", "cell_list", "contact_times", "dense_kernels", "deposition", "event_queue", "events", "impulses",
-            "messages", "narrow", "settings", "stats", "wall_grid")  # and what they import
+COMPILED = ("block", "cell_list", "contact_times", "deposition", "event_queue", "events", "impulses",
+            "messages", "narrow", "settings", "stats", "step_arrays", "wall_grid")  # and what they import
 
 
 def clear_stale_cache() -> None:
@@ -50,6 +50,6 @@ def chain_globs(folder: Path, patterns) -> list[Path]:
 def kernels() -> SimpleNamespace:
     """The compiled modules (imported, and so compiled or loaded from the cache, on first call)."""
     clear_stale_cache()
-    from . import block, cell_list, contact_times, dense_kernels, deposition, events, impulses, narrow, wall_grid
-    return SimpleNamespace(block=block, cell_list=cell_list, contact_times=contact_times, dense_kernels=dense_kernels,
-                           deposition=deposition, events=events, impulses=impulses, narrow=narrow, wall_grid=wall_grid)
+    from . import block, cell_list, contact_times, deposition, events, impulses, narrow, step_arrays, wall_grid
+    return SimpleNamespace(block=block, cell_list=cell_list, contact_times=contact_times, deposition=deposition,
+                           events=events, impulses=impulses, narrow=narrow, step_arrays=step_arrays, wall_grid=wall_grid)

@@ -56,17 +56,13 @@ class Bodies:
 
     @classmethod
     def of(cls, state: ParticleState) -> "Bodies":
-        free = state.movable
         stays = (state.motion == FIXED) | state.deposited
-        inv_m = np.where(free, 1.0 / np.where(free, state.mass, 1.0), 0.0)
-        inv_i = 2.5 * inv_m / np.maximum(state.radius, 1e-300) ** 2  # 1/I, I = 2/5 m r²
-        v = np.where(stays[:, None], 0.0, state.v)
-        driven = (state.motion == PRESCRIBED) & ~state.deposited & v.any(1)
-        one, row = np.zeros(1), np.zeros((1, 3))
-        return cls(np.vstack([state.x, row]), np.vstack([v, row]), np.vstack([state.omega, row]),
-                   np.append(inv_m, 0.0), np.append(inv_i, 0.0), np.append(state.radius, 0.0),
-                   np.append(free, False), np.append(state.deposited, False), np.append(driven, False),
-                   np.zeros(len(state) + 1), np.zeros(len(state) + 1, np.int64))
+        prescribed = (state.motion == PRESCRIBED) & ~state.deposited
+        x, v, w, inv_m, inv_i, radius, free, driven = jit.kernels().step_arrays.working_copy(
+            state.x, state.v, state.omega, state.radius, state.mass, state.movable, stays, prescribed)
+        n = len(state)
+        return cls(x, v, w, inv_m, inv_i, radius, free, np.append(state.deposited, False), driven, np.zeros(n + 1),
+                   np.zeros(n + 1, np.int64))
 
     def copy(self) -> "Bodies":
         return Bodies(*(np.array(value) for value in self.arrays()[:9]), self.clock.copy(), self.stamp.copy())

@@ -1,7 +1,9 @@
-"""A dense step's arithmetic per contact and per body, compiled (numba): the targets the sweeps
-drive each contact to, and the move of every body to the step's end (``dense`` says what they
-are). Each does in one pass what a dozen whole-array numpy operations did, with the same
-floating-point operations in the same order, so the results are those bits.
+"""A contact step's arithmetic over whole arrays, compiled (numba): the bodies' working copy
+(``solver.Bodies``), and in a dense step the targets the sweeps drive each contact to and the move
+of every body to the step's end (``dense`` says what they are). Each does in one pass what a dozen
+or two whole-array numpy operations did, with the same floating-point operations in the same order
+(the same bits); a step's fixed cost in calls is what does not shrink with the particles a rank
+holds.
 """
 from __future__ import annotations
 
@@ -12,6 +14,29 @@ from .impulses import roll_resistance
 from .settings import CONTACT_TOL
 
 STICKING_SLACK = 1.0 - 1e-9   # a tangential impulse this close to the cone's edge is sliding
+
+
+@njit(cache=True)
+def working_copy(x, v, omega, radius, mass, movable, stays, prescribed):
+    """The arrays of ``solver.Bodies`` for particles (n rows) and the world (row n): x, v, ω (v 0
+    where the particle ``stays``: fixed or deposited), 1/m and 1/I (0 unless ``movable``), r, free,
+    driven (``prescribed`` and moving)."""
+    n = len(radius)
+    x_all, v_all, w_all = np.zeros((n + 1, 3)), np.zeros((n + 1, 3)), np.zeros((n + 1, 3))
+    inv_m, inv_i, r_all = np.zeros(n + 1), np.zeros(n + 1), np.zeros(n + 1)
+    free, driven = np.zeros(n + 1, np.bool_), np.zeros(n + 1, np.bool_)
+    for i in range(n):
+        moving = False
+        for d in range(3):
+            x_all[i, d], w_all[i, d] = x[i, d], omega[i, d]
+            v_all[i, d] = 0.0 if stays[i] else v[i, d]
+            moving = moving or v_all[i, d] != 0.0
+        if movable[i]:
+            inv_m[i] = 1.0 / mass[i]
+        arm = max(radius[i], 1e-300)
+        inv_i[i] = 2.5 * inv_m[i] / (arm * arm)   # 1/I, I = 2/5 m r²
+        r_all[i], free[i], driven[i] = radius[i], movable[i], prescribed[i] and moving
+    return x_all, v_all, w_all, inv_m, inv_i, r_all, free, driven
 
 
 @njit(cache=True)
