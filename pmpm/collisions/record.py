@@ -46,24 +46,6 @@ class ContactRecord:
     def __len__(self) -> int:
         return len(self.first)
 
-    @classmethod
-    def merged(cls, pairs: "ContactRecord", walls: "ContactRecord | None") -> "ContactRecord":
-        """The particle pairs and the wall contacts (second: the world row, past every particle),
-        each sorted by (first, second, triangle), as one record in that order: each wall contact
-        goes after the pairs of its particle (a merge, not a sort of the whole: docs/collisions_log.md,
-        "Thirteenth session")."""
-        if walls is None or len(walls) == 0:
-            return pairs
-        m = len(pairs) + len(walls)
-        wall_rows = np.searchsorted(pairs.first, walls.first, "right") + np.arange(len(walls))
-        is_wall = np.zeros(m, bool)
-        is_wall[wall_rows] = True
-        order = np.empty(m, np.int64)       # merged row → row of the pairs followed by the walls
-        order[np.flatnonzero(~is_wall)] = np.arange(len(pairs))
-        order[wall_rows] = len(pairs) + np.arange(len(walls))
-        return cls(*(np.concatenate([getattr(pairs, f.name), getattr(walls, f.name)]).take(order, axis=0)
-                     for f in fields(cls)))
-
     def take(self, rows: np.ndarray) -> "ContactRecord":
         return ContactRecord(*(getattr(self, f.name)[rows] for f in fields(self)))
 

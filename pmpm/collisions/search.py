@@ -116,18 +116,15 @@ def find_contacts(bodies, walls: Walls | None, dt: float, reach: float, restitut
     if not dense and by_travel:
         pairs, keep, acts, counted, normal, gap, time = pair_contacts(bodies, reach, reach, dt, kernels, around, owned)
     # a dense step needs only the contacts that can act; an event step all within reach
-    take = np.flatnonzero(acts if dense else keep)
-    k = len(take)
-    # both parts come sorted (pairs by (i, j), walls by particle then triangle)
-    pair_record = ContactRecord(pairs[take, 0], pairs[take, 1], np.full(k, -1), normal[take], gap[take],
-                                np.ones(k, bool), time[take], np.zeros((k, 3)), np.full(k, restitution),
-                                np.full(k, friction), np.zeros(k))
-    wall_record = None
-    if wall_part is not None:
-        p, tri, keep, acts, normal, gap, face, u_wall, time = wall_part
-        take = np.flatnonzero(acts if dense else keep)
-        p, tri = p[take], tri[take]
-        wall_record = ContactRecord(p, np.full(len(p), n), tri, normal[take], gap[take], face[take], time[take],
-                                    u_wall[take], walls.restitution[tri], walls.friction[tri],
-                                    walls.rolling_friction[tri])
-    return ContactRecord.merged(pair_record, wall_record), dense, acting
+    pair_rows = np.flatnonzero(acts if dense else keep)
+    none = np.zeros(0, np.int64)
+    p, tri, wall_keep, wall_acts, wall_normal, wall_gap, face, u_wall, wall_time = wall_part or (
+        none, none, np.zeros(0, bool), np.zeros(0, bool), np.zeros((0, 3)), np.zeros(0), np.zeros(0, bool),
+        np.zeros((0, 3)), np.zeros(0))
+    wall_rows = np.flatnonzero(wall_acts if dense else wall_keep)
+    coefficients = (walls.restitution, walls.friction, walls.rolling_friction) if wall_part else (np.zeros(0),) * 3
+    # both parts come sorted (pairs by (i, j), walls by particle then triangle): merged in one pass
+    record = ContactRecord(*kernels.step_arrays.merged_record(
+        pair_rows, pairs, normal, gap, time, float(restitution), float(friction), wall_rows, p, tri, wall_normal,
+        wall_gap, face, wall_time, u_wall, *coefficients, n))
+    return record, dense, acting

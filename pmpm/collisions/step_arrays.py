@@ -120,3 +120,39 @@ def move_to_end(rows, contacts, lam_n, lam_t, touching, hits, weight, late, bodi
         for d in range(3):
             x[i, d] += v[i, d] * dt + displacement[i, d]
     return pair_impacts, wall_impacts, resting
+
+
+@njit(cache=True)
+def merged_record(pair_rows, pairs, pair_normal, pair_gap, pair_time, restitution, friction, wall_rows, wall_particle,
+                  wall_triangle, wall_normal, wall_gap, wall_face, wall_time, wall_velocity, wall_restitution,
+                  wall_friction, wall_rolling_friction, world):
+    """The arrays of a ``record.ContactRecord`` (in its field order): the particle pairs
+    ``pair_rows`` of the narrow phase's (``pairs`` (k, 2) sorted, with their normal, gap, time;
+    the particles' ``restitution`` and ``friction``) and its wall contacts ``wall_rows`` (sorted by
+    particle, then triangle; coefficients per triangle), merged so that each wall contact follows
+    the pairs of its particle (``world``: the row of the world body, a wall contact's second)."""
+    k, w = len(pair_rows), len(wall_rows)
+    m = k + w
+    first, second, triangle = np.empty(m, np.int64), np.empty(m, np.int64), np.empty(m, np.int64)
+    normal, gap, face, time = np.empty((m, 3)), np.empty(m), np.empty(m, np.bool_), np.empty(m)
+    velocity, e, mu, mu_r = np.zeros((m, 3)), np.empty(m), np.empty(m), np.zeros(m)
+    i, j = 0, 0
+    for out in range(m):
+        if j < w and (i == k or wall_particle[wall_rows[j]] < pairs[pair_rows[i], 0]):
+            c = wall_rows[j]
+            first[out], second[out], triangle[out] = wall_particle[c], world, wall_triangle[c]
+            for d in range(3):
+                normal[out, d], velocity[out, d] = wall_normal[c, d], wall_velocity[c, d]
+            gap[out], face[out], time[out] = wall_gap[c], wall_face[c], wall_time[c]
+            t = wall_triangle[c]
+            e[out], mu[out], mu_r[out] = wall_restitution[t], wall_friction[t], wall_rolling_friction[t]
+            j += 1
+        else:
+            c = pair_rows[i]
+            first[out], second[out], triangle[out] = pairs[c, 0], pairs[c, 1], -1
+            for d in range(3):
+                normal[out, d] = pair_normal[c, d]
+            gap[out], face[out], time[out] = pair_gap[c], True, pair_time[c]
+            e[out], mu[out] = restitution, friction
+            i += 1
+    return first, second, triangle, normal, gap, face, time, velocity, e, mu, mu_r
