@@ -1,9 +1,10 @@
 """A contact step's arithmetic over whole arrays, compiled (numba): the bodies' working copy
-(``solver.Bodies``), and in a dense step the targets the sweeps drive each contact to and the move
-of every body to the step's end (``dense`` says what they are). Each does in one pass what a dozen
-or two whole-array numpy operations did, with the same floating-point operations in the same order
-(the same bits); a step's fixed cost in calls is what does not shrink with the particles a rank
-holds.
+(``solver.Bodies``), the contact record's merge of its pairs and wall contacts (``search``), and in
+a dense step the targets the sweeps drive each contact to and the move of every body to the step's
+end (``dense`` says what they are). Each does in one pass what a dozen or two whole-array numpy
+operations did, with the same floating-point operations in the same order (the same bits): a
+step's fixed cost in calls does not shrink with the particles a rank holds, so on several ranks it
+weighed more than its share (docs/collisions.md, "Speed on 2 ranks").
 """
 from __future__ import annotations
 
