@@ -106,18 +106,19 @@ def migrate_particles(comm, exits, state: RunState, start: np.ndarray, dt: float
     if (counts[:, 3] >= 0).any():
         raise not_finite(int(counts[np.argmax(counts[:, 3] >= 0), 3]), state.step + 1, state.time + dt)
     through = {name: int(n) for name, n in zip(names, counts[:, 4:].sum(axis=0)) if n > 0}
-    state = replace(state, removed=state.removed + int(counts[:, 2].sum()),
-                    removed_through=counts_added(state.removed_through, through))
+    # the state's new parts, taken in one replace at the end
+    changes = dict(removed=state.removed + int(counts[:, 2].sum()),
+                   removed_through=counts_added(state.removed_through, through))
     if rebalance and counts[:, 0].max() > IMBALANCE * max(counts[:, 0].mean(), 1.0) and counts[:, 0].max() >= 64:
         each = particle_work(particles.id, remembered.first_id, remembered.second_id)
         partition = bisect(comm, particles.x[~outside], work=each[~outside])
         owner = np.where(outside, -1, partition.owner_of(particles.x))
-        state = replace(state, partition=partition)
+        changes["partition"] = partition
     elif counts[:, 1].sum() == 0:
-        if not outside.any():
-            return state
-        return replace(state, particles=particles.without(outside), hydro_force=state.hydro_force[~outside],
-                       hydro_torque=state.hydro_torque[~outside])
+        if outside.any():
+            changes.update(particles=particles.without(outside), hydro_force=state.hydro_force[~outside],
+                           hydro_torque=state.hydro_torque[~outside])
+        return replace(state, **changes)
     gone = np.flatnonzero(owner != comm.rank)     # removed (owner −1), or to another rank
     hydro = (state.hydro_force, state.hydro_torque)
     groups = [(owner[gone], packed(particles, gone, *hydro))]
@@ -131,10 +132,10 @@ def migrate_particles(comm, exits, state: RunState, start: np.ndarray, dt: float
     keep = np.ones(len(particles), bool)
     keep[gone] = False
     particles, _, _, (force, torque) = merged(particles, arrived, keep, hydro)
-    state = replace(state, particles=particles, hydro_force=force, hydro_torque=torque)
+    changes.update(particles=particles, hydro_force=force, hydro_torque=torque)
     if contacts is not None and (len(follows) or len(arrived_contacts[0][0])):
-        state = replace(state, contacts=spliced(contacts, follows, arrived_contacts[0][0]))
-    return state
+        changes["contacts"] = spliced(contacts, follows, arrived_contacts[0][0])
+    return replace(state, **changes)
 
 
 def memory_rows(contacts: ContactMemory, rows: np.ndarray) -> np.ndarray:

@@ -39,17 +39,11 @@ def merged(particles: ParticleState, block: np.ndarray, keep: np.ndarray | None 
     particle, the block's rows holding theirs after their fields, in order) merged alike."""
     order = np.argsort(block[:, ID], kind="stable")
     keep = np.ones(len(particles), bool) if keep is None else keep
-    n = int(keep.sum()) + len(block)
-    result = ParticleState(np.empty(n, np.int64), np.empty((n, 3)), np.empty((n, 3)), np.empty((n, 3)),
-                           np.empty(n), np.empty(n), np.empty(n, np.int8), np.empty(n, bool))
-    where_own, where_block = np.full(len(particles), -1, np.int64), np.empty(len(block), np.int64)
-    merged_extra = tuple(np.empty((n, 3)) for _ in extra)
     # (the kernel takes a tuple of at least one array: an empty one stands in where there are none)
-    _merge(particles.id, particles.x, particles.v, particles.omega, particles.radius, particles.density,
-           particles.motion, particles.deposited, keep, tuple(extra) or (np.empty((0, 3)),), block, order,
-           result.id, result.x, result.v, result.omega, result.radius, result.density, result.motion,
-           result.deposited, merged_extra or (np.empty((0, 3)),), where_own, where_block, len(extra))
-    return result, where_own, where_block, merged_extra
+    *fields, merged_extra, where_own, where_block = _merge(
+        particles.id, particles.x, particles.v, particles.omega, particles.radius, particles.density,
+        particles.motion, particles.deposited, keep, tuple(extra) or (np.empty((0, 3)),), block, order, len(extra))
+    return ParticleState(*fields), where_own, where_block, merged_extra[:len(extra)]
 
 
 def exchanged(comm, *groups: tuple) -> list[tuple[np.ndarray, np.ndarray]]:
@@ -57,24 +51,43 @@ def exchanged(comm, *groups: tuple) -> list[tuple[np.ndarray, np.ndarray]]:
     (−1: nowhere); returns per group the rows received, in rank order (each rank's in the order
     it sent them), and where each rank's begin ((size + 1,) offsets). One exchange of counts for
     all groups, one of rows per group; a group's blocks have the same width on every rank."""
-    sent, edges = [], []
-    for destination, block in groups:
-        order = np.argsort(destination, kind="stable")   # (−1 first, then by rank)
-        bounds = np.searchsorted(destination[order], np.arange(comm.size + 1))   # each rank's start, the end
-        sent.append(np.ascontiguousarray(block[order[bounds[0]:]]))
-        edges.append(bounds - bounds[0])
-    counts = np.stack([np.diff(e) for e in edges], axis=1).astype(np.int64)    # (ranks, groups)
+    counts = np.empty((comm.size, len(groups)), np.int64)
+    sent, starts = [], []
+    for g, (destination, block) in enumerate(groups):
+        order, bounds = _by_rank(destination, comm.size)
+        sent.append(block[order])
+        counts[:, g] = bounds[1:] - bounds[:-1]
+        starts.append(bounds[:-1])
     arriving = np.empty_like(counts)
     comm.Alltoall(counts, arriving)
+    offsets = np.zeros((comm.size + 1, len(groups)), np.int64)
+    np.cumsum(arriving, axis=0, out=offsets[1:])
     result = []
     for g, block in enumerate(sent):
         width = block.shape[1]
-        offsets = np.concatenate([[0], np.cumsum(arriving[:, g])])
-        received = np.empty((int(offsets[-1]), width))
-        comm.Alltoallv([block, counts[:, g] * width, edges[g][:-1] * width, MPI.DOUBLE],
-                       [received, arriving[:, g] * width, offsets[:-1] * width, MPI.DOUBLE])
-        result.append((received, offsets))
+        received = np.empty((int(offsets[-1, g]), width))
+        comm.Alltoallv([block, counts[:, g] * width, starts[g] * width, MPI.DOUBLE],
+                       [received, arriving[:, g] * width, offsets[:-1, g] * width, MPI.DOUBLE])
+        result.append((received, offsets[:, g].copy()))
     return result
+
+
+@njit(cache=True)
+def _by_rank(destination, ranks):
+    """The rows with a destination rank (>= 0), grouped by it in their order (a stable counting
+    sort), and where each rank's begin ((ranks + 1,) bounds)."""
+    bounds = np.zeros(ranks + 1, np.int64)
+    for d in destination:
+        if d >= 0:
+            bounds[d + 1] += 1
+    for r in range(ranks):
+        bounds[r + 1] += bounds[r]
+    order, fill = np.empty(bounds[ranks], np.int64), bounds[:ranks].copy()
+    for i in range(len(destination)):
+        if destination[i] >= 0:
+            order[fill[destination[i]]] = i
+            fill[destination[i]] += 1
+    return order, bounds
 
 
 @njit(cache=True)
@@ -93,13 +106,19 @@ def _pack(rows, pid, x, v, omega, radius, density, motion, deposited, out):
 
 
 @njit(cache=True)
-def _merge(pid, x, v, omega, radius, density, motion, deposited, keep, extra, block, order,
-           out_id, out_x, out_v, out_omega, out_radius, out_density, out_motion, out_deposited, out_extra,
-           where_own, where_block, n_extra):
+def _merge(pid, x, v, omega, radius, density, motion, deposited, keep, extra, block, order, n_extra):
     """The two sorted sequences (the rows where ``keep``, and the block's rows in ``order``) merged
-    by id into the out_ arrays; where_own / where_block take each one's row there. ``extra``,
-    ``out_extra``: the first ``n_extra`` are (n, 3) arrays merged alike."""
+    by id: the fields of a ``ParticleState``, the first ``n_extra`` of ``extra`` ((n, 3) arrays)
+    merged alike, and each one's row in the result (where_own −1: not kept)."""
     n, m = len(pid), len(order)
+    total = m
+    for i in range(n):
+        total += keep[i]
+    out_id, out_radius, out_density = np.empty(total, np.int64), np.empty(total), np.empty(total)
+    out_x, out_v, out_omega = np.empty((total, 3)), np.empty((total, 3)), np.empty((total, 3))
+    out_motion, out_deposited = np.empty(total, np.int8), np.empty(total, np.bool_)
+    out_extra = [np.empty((total, 3)) for _ in range(max(n_extra, 1))]
+    where_own, where_block = np.full(n, -1, np.int64), np.empty(m, np.int64)
     i, j, k = 0, 0, 0
     while i < n or j < m:
         if i < n and not keep[i]:
@@ -130,3 +149,5 @@ def _merge(pid, x, v, omega, radius, density, motion, deposited, keep, extra, bl
             where_block[a] = k
             j += 1
         k += 1
+    return (out_id, out_x, out_v, out_omega, out_radius, out_density, out_motion, out_deposited, out_extra, where_own,
+            where_block)
