@@ -117,7 +117,7 @@ def _merge(pid, x, v, omega, radius, density, motion, deposited, keep, extra, bl
     out_id, out_radius, out_density = np.empty(total, np.int64), np.empty(total), np.empty(total)
     out_x, out_v, out_omega = np.empty((total, 3)), np.empty((total, 3)), np.empty((total, 3))
     out_motion, out_deposited = np.empty(total, np.int8), np.empty(total, np.bool_)
-    out_extra = [np.empty((total, 3)) for _ in range(max(n_extra, 1))]
+    out_extra = [np.empty((total if n_extra else 0, 3)) for _ in range(max(n_extra, 1))]   # (one empty: none)
     where_own, where_block = np.full(n, -1, np.int64), np.empty(m, np.int64)
     i, j, k = 0, 0, 0
     while i < n or j < m:
