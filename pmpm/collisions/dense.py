@@ -43,16 +43,9 @@ def dense_step(bodies, record, warm_n, warm_t, settings, dt, walls, kernels, cou
     v, w, inv_m, inv_i = bodies.v, bodies.w, bodies.inv_m, bodies.inv_i
     normal, gap = record.normal, record.gap
     touching, hits, target, hit_time, closing_speed = targets(bodies, record, rows, r_first, r_second, settings, dt)
-    lam_n, lam_t = np.zeros(m), np.zeros((m, 3))
-    lam_n[rows], lam_t[rows] = warm_n[rows], warm_t[rows]
-    remembered = bool(lam_n.any())
-    members = bodies_in(rows, first, second, n)
+    lam_n, lam_t, remembered, members, driven = solve_start(bodies, record, rows, warm_n, warm_t, walls)
     v0, w0 = v.copy(), w.copy()
     energy = impulses.kinetic_energy(members, inv_m, inv_i, v, w)
-    driven = bodies.driven[first[rows]] | bodies.driven[second[rows]]
-    if walls is not None:
-        moving = walls.velocity.any(1) | walls.angular_velocity.any(1)
-        driven |= wall[rows] & moving[np.maximum(triangle[rows], 0)]
     if remembered:
         impulses.warm_start(rows, first, second, normal, r_first, r_second, record.friction, inv_m, inv_i, v, w,
                             lam_n, lam_t)
@@ -61,7 +54,7 @@ def dense_step(bodies, record, warm_n, warm_t, settings, dt, walls, kernels, cou
     tol = SWEEP_TOL * settings.rest_speed if settings.rest_speed > 0 else 1e-12 * scale
     sweeps = impulses.sweep(rows, first, second, normal, r_first, r_second, record.wall_velocity, target,
                             record.friction, inv_m, inv_i, v, w, lam_n, lam_t, budget, tol)
-    if not driven.any() and impulses.kinetic_energy(members, inv_m, inv_i, v, w) > energy * (1 + ENERGY_TOL) + 1e-300:
+    if not driven and impulses.kinetic_energy(members, inv_m, inv_i, v, w) > energy * (1 + ENERGY_TOL) + 1e-300:
         # Newton's law over simultaneous contacts can make energy: solve inelastically instead
         counters[CLAMPS] += 1
         v[:], w[:] = v0, w0
@@ -77,12 +70,14 @@ def dense_step(bodies, record, warm_n, warm_t, settings, dt, walls, kernels, cou
     return lam_n, lam_t
 
 
-def bodies_in(rows: np.ndarray, first: np.ndarray, second: np.ndarray, n: int) -> np.ndarray:
-    """The particles (rows < n, ascending) in contacts ``rows`` (a mask over n, not a sort of the contacts)."""
-    touched = np.zeros(n + 1, bool)
-    touched[first[rows]] = True
-    touched[second[rows]] = True
-    return np.flatnonzero(touched[:n])
+def solve_start(bodies, record, rows, warm_n, warm_t, walls) -> tuple:
+    """The contacts' impulses to start the solve of ``rows`` from, (m,) and (m, 3): the remembered
+    ``warm_n``, ``warm_t`` on ``rows``, 0 on the others; whether any is remembered; the particles
+    in ``rows`` (ascending); whether any contact of ``rows`` is driven (a prescribed body or a
+    moving wall: it may put energy in). Compiled: ``step_arrays.solve_start``."""
+    wall_drives = walls.drives if walls is not None else np.zeros(0, bool)
+    return jit.kernels().step_arrays.solve_start(rows, record.first, record.second, record.triangle, warm_n, warm_t,
+                                                 bodies.driven, wall_drives, len(bodies.radius) - 1)
 
 
 def targets(bodies, record, rows, r_first, r_second, settings, dt) -> tuple:

@@ -14,6 +14,8 @@ from dataclasses import dataclass, fields
 
 import numpy as np
 
+from . import jit
+
 ID_LIMIT = 1 << 31        # particle ids below this, triangles below 2^30, fit the int64 keys
 
 
@@ -116,34 +118,20 @@ class ContactMemory:
             raise ValueError("particle ids must be below 2^31 for the contact memory")
         return first_id.astype(np.int64) * (1 << 32) + (second_id.astype(np.int64) + ID_LIMIT)
 
-    @staticmethod
-    def ids_of(record: ContactRecord, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(first_id, second_id) of the record's contacts; ``ids`` (n,) the particles' ids by row."""
-        wall = record.triangle >= 0
-        other = np.where(wall, -1 - record.triangle, ids[np.where(wall, 0, record.second)])
-        return ids[record.first], other
-
     def recall(self, record: ContactRecord, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The remembered impulses of the record's contacts: (m,) and (m, 3), zero where none."""
-        m = len(record)
-        normal, tangential = np.zeros(m), np.zeros((m, 3))
-        if len(self) == 0 or m == 0:
-            return normal, tangential
-        stored = self.keys
-        now = self.key_of(*self.ids_of(record, ids))
-        at = np.minimum(np.searchsorted(stored, now), len(stored) - 1)
-        found = stored[at] == now
-        normal[found] = self.normal_impulse[at[found]]
-        tangential[found] = self.tangential_impulse[at[found]]
-        return normal, tangential
+        """The remembered impulses of the record's contacts: (m,) and (m, 3), zero where none
+        (compiled: ``step_arrays.recalled``)."""
+        return jit.kernels().step_arrays.recalled(record.first, record.second, record.triangle, ids, self.first_id,
+                                                  self.second_id, self.normal_impulse, self.tangential_impulse)
 
     @classmethod
     def remember(cls, record: ContactRecord, ids: np.ndarray, normal_impulse: np.ndarray,
                  tangential_impulse: np.ndarray, keep: np.ndarray | None = None) -> "ContactMemory":
-        """The impulses of the record's contacts ``keep`` (default: those that pushed, λ_n > 0)."""
+        """The impulses of the record's contacts ``keep`` (default: those that pushed, λ_n > 0)
+        (compiled: ``step_arrays.remembered``)."""
         keep = normal_impulse > 0 if keep is None else keep
-        first_id, second_id = cls.ids_of(record, ids)
-        first_id, second_id = first_id[keep], second_id[keep]
-        order = np.argsort(cls.key_of(first_id, second_id), kind="stable")
-        return cls(first_id[order], second_id[order], normal_impulse[keep][order],
-                   tangential_impulse[keep][order])
+        *arrays, largest = jit.kernels().step_arrays.remembered(record.first, record.second, record.triangle, ids,
+                                                                keep, normal_impulse, tangential_impulse)
+        if largest >= ID_LIMIT:
+            raise ValueError("particle ids must be below 2^31 for the contact memory")
+        return cls(*arrays)

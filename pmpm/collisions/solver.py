@@ -168,7 +168,7 @@ def event_step(bodies, record, warm_n, warm_t, lam_n, lam_t, settings, dt, speed
     driven = bodies.driven[record.first] | bodies.driven[record.second]
     if walls is not None:
         wall = record.triangle >= 0
-        driven[wall] |= (walls.velocity.any(1) | walls.angular_velocity.any(1))[record.triangle[wall]]
+        driven[wall] |= walls.drives[record.triangle[wall]]
     contacts = (record.first, record.second, record.triangle, record.friction, record.rolling_friction,
                 record.restitution, driven, start, adjacency)
     scale = max(settings.rest_speed, bodies.top_speed(), 1e-300)

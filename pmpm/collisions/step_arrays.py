@@ -1,8 +1,9 @@
 """A contact step's arithmetic over whole arrays, compiled (numba): the bodies' working copy
-(``solver.Bodies``), the contact record's merge of its pairs and wall contacts (``search``), and in
-a dense step the targets the sweeps drive each contact to and the move of every body to the step's
-end (``dense`` says what they are). Each does in one pass what a dozen or two whole-array numpy
-operations did, with the same floating-point operations in the same order (the same bits): a
+(``solver.Bodies``), the contact record's merge of its pairs and wall contacts (``search``), the
+contact memory's recall and remembering (``record.ContactMemory``), and in a dense step the
+solve's start, the targets the sweeps drive each contact to and the move of every body to the
+step's end (``dense`` says what they are). Each does in one pass what a dozen or two whole-array
+numpy operations did, with the same floating-point operations in the same order (the same bits): a
 step's fixed cost in calls does not shrink with the particles a rank holds, so on several ranks it
 weighed more than its share (docs/collisions.md, "Speed on 2 ranks").
 """
@@ -38,6 +39,35 @@ def working_copy(x, v, omega, radius, mass, movable, stays, prescribed):
         inv_i[i] = 2.5 * inv_m[i] / (arm * arm)   # 1/I, I = 2/5 m r²
         r_all[i], free[i], driven[i] = radius[i], movable[i], prescribed[i] and moving
     return x_all, v_all, w_all, inv_m, inv_i, r_all, free, driven
+
+
+@njit(cache=True)
+def solve_start(rows, first, second, triangle, warm_n, warm_t, driven, wall_drives, n):
+    """The start of a dense solve of the contacts ``rows`` (of m; particles 0..n−1, the world n):
+    their impulses, (m,) and (m, 3), the remembered ones ``warm_n``, ``warm_t`` on ``rows`` and 0
+    elsewhere; whether any is remembered (not 0); the particles in them (ascending); whether any
+    contact is driven (a ``driven`` body, per row, or a triangle that ``wall_drives``)."""
+    m = len(first)
+    lam_n, lam_t = np.zeros(m), np.zeros((m, 3))
+    touched = np.zeros(n + 1, np.bool_)
+    remembered, any_driven = False, False
+    for c in rows:
+        lam_n[c] = warm_n[c]
+        for d in range(3):
+            lam_t[c, d] = warm_t[c, d]
+        remembered = remembered or warm_n[c] != 0.0
+        touched[first[c]] = touched[second[c]] = True
+        any_driven = any_driven or driven[first[c]] or driven[second[c]] or (
+            triangle[c] >= 0 and wall_drives[triangle[c]])
+    count = 0
+    for i in range(n):
+        count += touched[i]
+    members, at = np.empty(count, np.int64), 0
+    for i in range(n):
+        if touched[i]:
+            members[at] = i
+            at += 1
+    return lam_n, lam_t, remembered, members, any_driven
 
 
 @njit(cache=True)
@@ -157,3 +187,78 @@ def merged_record(pair_rows, pairs, pair_normal, pair_gap, pair_time, restitutio
             e[out], mu[out] = restitution, friction
             i += 1
     return first, second, triangle, normal, gap, face, time, velocity, e, mu, mu_r
+
+
+@njit(cache=True)
+def contact_ids(c, first, second, triangle, ids):
+    """(first id, second id) of contact ``c`` (``record.ContactMemory``'s: −1 − triangle for a wall)."""
+    return ids[first[c]], (-1 - triangle[c] if triangle[c] >= 0 else ids[second[c]])
+
+
+@njit(cache=True)
+def recalled(first, second, triangle, ids, memory_first, memory_second, memory_normal, memory_tangential):
+    """The remembered impulses of a record's contacts, (m,) and (m, 3), 0 where none: each contact's
+    ids (``contact_ids``; ``ids`` the particles' by row) looked up in the memory's rows, sorted by
+    (first id, second id). A record lists each particle's contacts together, by row (so by id
+    where the rows are sorted by id): the memory's rows of the next first id are found walking on
+    from the last ones (searched for where the ids go back)."""
+    m, k = len(first), len(memory_first)
+    normal, tangential = np.zeros(m), np.zeros((m, 3))
+    low, high, current = 0, 0, -1     # the memory's rows [low, high) are those of first id ``current``
+    for c in range(m):
+        first_id, second_id = contact_ids(c, first, second, triangle, ids)
+        if first_id != current:
+            low = high if first_id > current else np.searchsorted(memory_first, first_id)
+            while low < k and memory_first[low] < first_id:
+                low += 1
+            high = low
+            while high < k and memory_first[high] == first_id:
+                high += 1
+            current = first_id
+        for r in range(low, high):
+            if memory_second[r] == second_id:
+                normal[c] = memory_normal[r]
+                for d in range(3):
+                    tangential[c, d] = memory_tangential[r, d]
+                break
+    return normal, tangential
+
+
+@njit(cache=True)
+def remembered(first, second, triangle, ids, keep, lam_n, lam_t):
+    """The arrays of a ``record.ContactMemory`` (first id, second id, normal and tangential impulse)
+    of a record's contacts where ``keep``, sorted by (first id, second id) as a stable sort would,
+    and the largest id among them (the memory's keys need ids below ``record.ID_LIMIT``). A
+    record's contacts come nearly in that order (by first particle, a row's walls after its pairs):
+    an insertion sort, unless the first ids are out of order (rows not sorted by id), then a merge
+    sort."""
+    k = 0
+    for c in range(len(first)):
+        k += keep[c]
+    first_id, second_id = np.empty(k, np.int64), np.empty(k, np.int64)
+    source = np.empty(k, np.int64)
+    largest, in_order, at = np.int64(-1), True, 0
+    for c in range(len(first)):
+        if keep[c]:
+            first_id[at], second_id[at] = contact_ids(c, first, second, triangle, ids)
+            source[at] = c
+            largest = max(largest, first_id[at], second_id[at])
+            in_order = in_order and (at == 0 or first_id[at - 1] <= first_id[at])
+            at += 1
+    if in_order:
+        for at in range(1, k):
+            f, s, c = first_id[at], second_id[at], source[at]
+            back = at - 1
+            while back >= 0 and first_id[back] == f and second_id[back] > s:
+                first_id[back + 1], second_id[back + 1], source[back + 1] = first_id[back], second_id[back], source[back]
+                back -= 1
+            first_id[back + 1], second_id[back + 1], source[back + 1] = f, s, c
+    else:
+        order = np.argsort(first_id * (np.int64(1) << 32) + (second_id + (np.int64(1) << 31)), kind="mergesort")
+        first_id, second_id, source = first_id[order], second_id[order], source[order]
+    normal, tangential = np.empty(k), np.empty((k, 3))
+    for at in range(k):
+        normal[at] = lam_n[source[at]]
+        for d in range(3):
+            tangential[at, d] = lam_t[source[at], d]
+    return first_id, second_id, normal, tangential, largest

@@ -36,7 +36,7 @@ from mpi4py import MPI
 from . import jit, messages
 from .record import ContactMemory
 from .search import find_contacts, travel_of, wall_arrays
-from .dense import bodies_in, finish, targets
+from .dense import finish, solve_start, targets
 from .settings import COLD_SWEEPS, ENERGY_TOL, SEARCH_SLACK, SWEEP_TOL, CollisionSettings
 from .solver import Bodies, ContactStep, advance_with_collisions, remove_overlaps
 from .stats import CLAMPS, DEPOSITED, EXTRA, NAMES, SWEEPS, as_dict, new_counters
@@ -185,7 +185,6 @@ def dense_blocks(halo: Halo, bodies, record, rows, warm_n, warm_t, settings, dt,
     ranks' sweeps in one order (see the module's docstring). Returns the
     contacts' impulses (m,) and (m, 3) (N s, on ``first``; 0 on other ranks' contacts)."""
     comm, impulses = halo.comm, kernels.impulses
-    n, m = len(bodies.radius) - 1, len(record)
     first, second, triangle = record.first, record.second, record.triangle
     rows = rows[~kernels.narrow.parallel_duplicates(rows, first, triangle, record.gap, record.normal, bodies.radius)]
     wall = triangle >= 0
@@ -197,19 +196,12 @@ def dense_blocks(halo: Halo, bodies, record, rows, warm_n, warm_t, settings, dt,
     v, w, inv_m, inv_i = bodies.v, bodies.w, bodies.inv_m, bodies.inv_i
     normal = record.normal
     touching, hits, target, hit_time, closing_speed = targets(bodies, record, rows, r_first, r_second, settings, dt)
-    solved = np.zeros(m, bool)
-    solved[rows] = True
-    lam_n, lam_t = np.where(solved, warm_n, 0.0), np.where(solved[:, None], warm_t, 0.0)
-    members = bodies_in(rows, first, second, n)
+    lam_n, lam_t, remembered, members, driven = solve_start(bodies, record, rows, warm_n, warm_t, walls)
     owned_members = members[halo.owned[members]]
     v0, w0 = v.copy(), w.copy()
-    driven = bodies.driven[first[rows]] | bodies.driven[second[rows]]
-    if walls is not None:
-        moving = walls.velocity.any(1) | walls.angular_velocity.any(1)
-        driven |= wall[rows] & moving[np.maximum(triangle[rows], 0)]
     scale = max(closing_speed, settings.rest_speed, 1e-300)
     tol = SWEEP_TOL * settings.rest_speed if settings.rest_speed > 0 else 1e-12 * scale
-    remembered, driven, tol, energy = reduced(comm, max_of=(float(lam_n.any()), float(driven.any()), tol),
+    remembered, driven, tol, energy = reduced(comm, max_of=(float(remembered), float(driven), tol),
                                               sum_of=(impulses.kinetic_energy(owned_members, inv_m, inv_i, v, w),))
     reference = (v.copy(), w.copy())
     if remembered:

@@ -81,6 +81,12 @@ class Walls:
         """(m,) bool: rigid triangles with a velocity or an angular velocity."""
         return self.rigid & (self.velocity.any(1) | self.angular_velocity.any(1))
 
+    @cached_property
+    def drives(self) -> np.ndarray:
+        """(m,) bool: triangles that can put energy into a contact, with a velocity or an angular
+        velocity (rigid or not: a belt's surface moves too)."""
+        return self.velocity.any(1) | self.angular_velocity.any(1)
+
     def moved(self, dt: float) -> "Walls":
         """The walls after ``dt``: rigid triangles rotated by Ω dt about their centre (Rodrigues) and
         translated by V dt, their centres translated; ``self`` if none moves."""
