@@ -10,6 +10,7 @@ from __future__ import annotations
 from dataclasses import dataclass, fields, replace
 
 import numpy as np
+from numba import njit
 
 FREE, FIXED, PRESCRIBED = 0, 1, 2  # ParticleState.motion codes (pmpm.injection.MOTION_CODES)
 
@@ -88,9 +89,20 @@ class ParticleState:
 
 def accelerate(state: ParticleState, force: np.ndarray, torque: np.ndarray, dt: float) -> None:
     """Newton–Euler update of the free particles' V and ω over dt (explicit), in place."""
-    free = state.movable
-    state.v[free] += dt * force[free] / state.mass[free, None]
-    state.omega[free] += dt * torque[free] / state.inertia[free, None]
+    _accelerate(state.v, state.omega, np.ascontiguousarray(force, float), np.ascontiguousarray(torque, float),
+                state.mass, state.radius, state.motion, state.deposited, float(dt))
+
+
+@njit(cache=True)
+def _accelerate(v, omega, force, torque, mass, radius, motion, deposited, dt):
+    """``accelerate``, compiled (every step, every particle): the movable ones' V += dt F / m and
+    ω += dt T / I, I = 0.4 m r² (``ParticleState.inertia``'s operations, in its order)."""
+    for i in range(len(mass)):
+        if motion[i] == FREE and not deposited[i]:
+            inertia = 0.4 * mass[i] * (radius[i] * radius[i])
+            for d in range(3):
+                v[i, d] += dt * force[i, d] / mass[i]
+                omega[i, d] += dt * torque[i, d] / inertia
 
 
 def fastest(v: np.ndarray, moving: np.ndarray) -> float:

@@ -32,7 +32,8 @@ def no_walls() -> tuple:
 
 def travel_of(speed, dt: float, reach: float):
     """How far a body at ``speed`` (m/s; array or scalar) goes in ``dt`` (a hair more), at most
-    half the step's ``reach``: the search by each one's travel of a step that may be dense."""
+    half the step's ``reach``: the search by each one's travel of a step that may be dense
+    (``step_arrays.travels``: of each body's velocity, compiled)."""
     return np.minimum(np.asarray(speed) * dt * (1 + 1e-9), 0.5 * reach)
 
 
@@ -95,7 +96,7 @@ def find_contacts(bodies, walls: Walls | None, dt: float, reach: float, restitut
     # act are all found (the dense step needs no others) among far fewer than within the reach of
     # the fastest particle. An event step needs every pair within reach: searched again then.
     by_travel = dense_contacts > 0
-    travel = travel_of(np.linalg.norm(v[:n], axis=1), dt, reach) if by_travel else reach
+    travel = kernels.step_arrays.travels(v[:n], None, dt, reach) if by_travel else reach
     pairs, keep, acts, counted, normal, gap, time = pair_contacts(bodies, travel, reach, dt, kernels, around, owned)
     wall_part = None
     mobile = np.flatnonzero(free[:n])

@@ -198,29 +198,23 @@ def remove_overlaps(bodies, record, walls_after, kernels, extra, searched: float
             break
         gap, normal, front = kernels.narrow.end_gaps(record.first, record.second, record.triangle, bodies.x,
                                                      bodies.radius, walls)
-        size = bodies.radius[record.first] + bodies.radius[record.second]
-        overlapping = front & (gap < -OVERLAP_TOL * size)
-        if not overlapping.any():
-            break
-        removed += int(overlapping.sum())
         # the overlaps, and the contacts that moving them apart could close (the deepest overlap
         # bounds how far a sphere moves)
-        near = front & (gap < -float(gap[overlapping].min()))
-        if not thorough:
-            involved = np.zeros(len(bodies.radius), bool)
-            involved[record.first[overlapping]] = involved[record.second[overlapping]] = True
-            involved[-1] = False  # the world (walls)
-            near &= involved[record.first] | involved[record.second]
-        rows = np.flatnonzero(near)
-        floor = np.where(overlapping, 0.0, np.minimum(gap, 0.0))
-        before = bodies.x.copy()
+        overlaps, rows, floor, smallest = kernels.step_arrays.overlap_rows(
+            record.first, record.second, bodies.radius, gap, front, OVERLAP_TOL, thorough)
+        if overlaps == 0:
+            break
+        removed += overlaps
+        before = bodies.x.copy() if thorough else None
         kernels.impulses.separate(rows, record.first, record.second, normal, gap, floor, bodies.inv_m, bodies.x,
                                   SEPARATION_SWEEPS if thorough else SEPARATION_SWEEPS // 5,
-                                  0.5 * OVERLAP_TOL * float(size[rows].min()))
+                                  0.5 * OVERLAP_TOL * float(smallest))
+        if not thorough:
+            break
         shift = np.sqrt(((bodies.x - before) ** 2).sum(1))
         moved = float(shift.max())
-        if not thorough or moved <= 0.25 * searched:
-            break  # (or too little to reach a sphere beyond the contacts searched)
+        if moved <= 0.25 * searched:
+            break  # (too little to reach a sphere beyond the contacts searched)
         searched = 2.0 * moved
         record = find_contacts(bodies, walls_after if walls_after is not None and len(walls_after) else None, 0.0,
                                searched, 0.0, 0.0, kernels, around=np.flatnonzero(shift[:-1] > 0))[0]

@@ -1,8 +1,9 @@
 """A contact step's arithmetic over whole arrays, compiled (numba): the bodies' working copy
-(``solver.Bodies``), the contact record's merge of its pairs and wall contacts (``search``), the
-contact memory's recall and remembering (``record.ContactMemory``), and in a dense step the
-solve's start, the targets the sweeps drive each contact to and the move of every body to the
-step's end (``dense`` says what they are). Each does in one pass what a dozen or two whole-array
+(``solver.Bodies``) and travel, the contact record's merge of its pairs and wall contacts
+(``search``), the contact memory's recall and remembering (``record.ContactMemory``), in a dense
+step the solve's start, the targets the sweeps drive each contact to and the move of every body
+to the step's end (``dense`` says what they are), and the overlaps left to remove
+(``solver.remove_overlaps``). Each does in one pass what a dozen or two whole-array
 numpy operations did, with the same floating-point operations in the same order (the same bits): a
 step's fixed cost in calls does not shrink with the particles a rank holds, so on several ranks it
 weighed more than its share (docs/collisions.md, "Speed on 2 ranks").
@@ -262,3 +263,52 @@ def remembered(first, second, triangle, ids, keep, lam_n, lam_t):
         for d in range(3):
             tangential[at, d] = lam_t[source[at], d]
     return first_id, second_id, normal, tangential, largest
+
+
+@njit(cache=True)
+def overlap_rows(first, second, radius, gap, front, tolerance, thorough):
+    """The overlaps to remove at a step's end (``solver.remove_overlaps``): of the contacts whose
+    ``front`` side faces the other body, those deeper than ``tolerance`` (r_i + r_j). Returns
+    their number; the contacts moving them apart could close (in front, deeper than minus the
+    deepest overlap; unless ``thorough``, only those of the bodies in an overlap, the world
+    aside); the floor of each contact's gap (0 for an overlap, else its gap if negative); the
+    least r_i + r_j among the rows."""
+    m, n = len(first), len(radius) - 1
+    overlapping = np.zeros(m, np.bool_)
+    count, deepest = 0, np.inf
+    for c in range(m):
+        if front[c] and gap[c] < -tolerance * (radius[first[c]] + radius[second[c]]):
+            overlapping[c] = True
+            count += 1
+            deepest = min(deepest, gap[c])
+    floor = np.empty(m)
+    for c in range(m):
+        floor[c] = 0.0 if overlapping[c] else (gap[c] if gap[c] < 0.0 else 0.0)
+    if count == 0:
+        return 0, np.zeros(0, np.int64), floor, np.inf
+    involved = np.zeros(n + 1, np.bool_)
+    for c in range(m):
+        if overlapping[c]:
+            involved[first[c]] = involved[second[c]] = True
+    involved[n] = False   # the world (walls)
+    rows, k, smallest = np.empty(m, np.int64), 0, np.inf
+    for c in range(m):
+        if front[c] and gap[c] < -deepest and (thorough or involved[first[c]] or involved[second[c]]):
+            rows[k] = c
+            k += 1
+            smallest = min(smallest, radius[first[c]] + radius[second[c]])
+    return count, rows[:k], floor, smallest
+
+
+@njit(cache=True)
+def travels(v, moving, dt, reach):
+    """``search.travel_of`` of each body's speed |v| (0 where not ``moving``; None: all move)."""
+    out = np.empty(len(v))
+    half = 0.5 * reach
+    for i in range(len(v)):
+        speed = 0.0
+        if moving is None or moving[i]:
+            speed = np.sqrt(v[i, 0] * v[i, 0] + v[i, 1] * v[i, 1] + v[i, 2] * v[i, 2])
+        travel = speed * dt * (1 + 1e-9)
+        out[i] = travel if travel <= half else half
+    return out

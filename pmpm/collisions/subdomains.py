@@ -75,7 +75,7 @@ def advance_owned(comm, partition: Partition, state: ParticleState, walls: Walls
     dense_likely = settings.dense_contacts > 0 and remembered >= max(settings.gather_contacts, 1)
     width = full_width
     if dense_likely:
-        travel = travel_of(np.where(state.moving, np.linalg.norm(state.v, axis=1), 0.0), dt, reach)
+        travel = kernels.step_arrays.travels(state.v, state.moving, dt, reach)
         width = (state.radius + r_max + travel + travel_of(top, dt, reach)) * (1 + 1e-9)
     search = (comm, partition, state, used_walls, dt, reach, settings, kernels)
     halo, local, bodies, (record, dense, acting) = ghosts_and_contacts(*search, width)
