@@ -130,8 +130,11 @@ class ContactMemory:
         """The impulses of the record's contacts ``keep`` (default: those that pushed, λ_n > 0)
         (compiled: ``step_arrays.remembered``)."""
         keep = normal_impulse > 0 if keep is None else keep
-        *arrays, largest = jit.kernels().step_arrays.remembered(record.first, record.second, record.triangle, ids,
-                                                                keep, normal_impulse, tangential_impulse)
+        *arrays, largest, in_order = jit.kernels().step_arrays.remembered(
+            record.first, record.second, record.triangle, ids, keep, normal_impulse, tangential_impulse)
         if largest >= ID_LIMIT:
             raise ValueError("particle ids must be below 2^31 for the contact memory")
+        if not in_order:   # rows not sorted by id (a gathered cluster): a stable sort by key
+            order = np.argsort(cls.key_of(arrays[0], arrays[1]), kind="stable")
+            arrays = [values[order] for values in arrays]
         return cls(*arrays)

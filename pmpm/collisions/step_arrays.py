@@ -229,10 +229,10 @@ def recalled(first, second, triangle, ids, memory_first, memory_second, memory_n
 def remembered(first, second, triangle, ids, keep, lam_n, lam_t):
     """The arrays of a ``record.ContactMemory`` (first id, second id, normal and tangential impulse)
     of a record's contacts where ``keep``, sorted by (first id, second id) as a stable sort would,
-    and the largest id among them (the memory's keys need ids below ``record.ID_LIMIT``). A
-    record's contacts come nearly in that order (by first particle, a row's walls after its pairs):
-    an insertion sort, unless the first ids are out of order (rows not sorted by id), then a merge
-    sort."""
+    and the largest id among them (the memory's keys need ids below ``record.ID_LIMIT``), and
+    whether they are sorted. A record's contacts come nearly in that order (by first particle, a
+    row's walls after its pairs): an insertion sort within each first id, unless the first ids are
+    out of order (rows not sorted by id: then they are returned as they come, unsorted)."""
     k = 0
     for c in range(len(first)):
         k += keep[c]
@@ -254,15 +254,12 @@ def remembered(first, second, triangle, ids, keep, lam_n, lam_t):
                 first_id[back + 1], second_id[back + 1], source[back + 1] = first_id[back], second_id[back], source[back]
                 back -= 1
             first_id[back + 1], second_id[back + 1], source[back + 1] = f, s, c
-    else:
-        order = np.argsort(first_id * (np.int64(1) << 32) + (second_id + (np.int64(1) << 31)), kind="mergesort")
-        first_id, second_id, source = first_id[order], second_id[order], source[order]
     normal, tangential = np.empty(k), np.empty((k, 3))
     for at in range(k):
         normal[at] = lam_n[source[at]]
         for d in range(3):
             tangential[at, d] = lam_t[source[at], d]
-    return first_id, second_id, normal, tangential, largest
+    return first_id, second_id, normal, tangential, largest, in_order
 
 
 @njit(cache=True)

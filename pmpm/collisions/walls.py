@@ -79,7 +79,7 @@ class Walls:
     @cached_property
     def moves(self) -> np.ndarray:
         """(m,) bool: rigid triangles with a velocity or an angular velocity."""
-        return self.rigid & (self.velocity.any(1) | self.angular_velocity.any(1))
+        return self.rigid & self.drives
 
     @cached_property
     def drives(self) -> np.ndarray:
