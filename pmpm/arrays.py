@@ -58,3 +58,18 @@ def rotate(vectors, angle_vectors) -> np.ndarray:
     vectors : (3,) or (k, 3); angle_vectors : (3,) or (k, 3), broadcast against ``vectors``.
     """
     return np.einsum("...ij,...j->...i", rotation_matrix(angle_vectors), np.asarray(vectors, float))
+
+
+# scipy.spatial and scipy.sparse are loaded on first use: a run without a flow that never places,
+# checks or attracts particles by distance does without them (part of every start's imports).
+def kd_tree(points: np.ndarray):
+    """scipy's cKDTree of ``points`` (k, 3)."""
+    from scipy.spatial import cKDTree
+    return cKDTree(points)
+
+
+def csr_matrix(values: np.ndarray, rows: np.ndarray, columns: np.ndarray, shape: tuple):
+    """scipy's CSR matrix of ``shape`` with ``values`` at (``rows``, ``columns``) (duplicates summed
+    when converted)."""
+    from scipy.sparse import csr_matrix as csr
+    return csr((values, (rows, columns)), shape=shape)

@@ -16,9 +16,8 @@ momentum is conserved exactly even when n1 != n2). Eq. 10, from each wall bounda
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial import cKDTree
 
-from .arrays import sum_rows
+from .arrays import kd_tree, sum_rows
 from .collisions import Walls, closest_points_on_triangles
 from .halo import Halo
 from .ownership import Partition
@@ -40,7 +39,7 @@ def field_forces(state: ParticleState, walls: Walls | None, G_p: float, n1: floa
         return force
     mass = state.mass
     if G_p != 0.0 and n > 1:
-        pairs = cKDTree(state.x).query_pairs(cutoff, output_type="ndarray")
+        pairs = kd_tree(state.x).query_pairs(cutoff, output_type="ndarray")
         if len(pairs):
             i, j = pairs[:, 0], pairs[:, 1]
             d = state.x[j] - state.x[i]

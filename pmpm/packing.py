@@ -17,7 +17,8 @@ No two spheres overlap (nor a sphere and another's image, nor a sphere and a wal
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial import cKDTree
+
+from .arrays import kd_tree
 
 
 def random_packing(count: int, lower, upper, radius: float, mirrors=(False, False, False), seed: int = 1,
@@ -65,7 +66,7 @@ def separation(x: np.ndarray, r: float, lower: np.ndarray, upper: np.ndarray, mi
                 sources.append(s[near])
         points, source = points + images, source + sources
     points, source = np.concatenate(points), np.concatenate(source)
-    pairs = cKDTree(points).query_pairs(2 * r, output_type="ndarray")
+    pairs = kd_tree(points).query_pairs(2 * r, output_type="ndarray")
     pairs = pairs[(pairs[:, 0] < n) & (source[pairs[:, 1]] != pairs[:, 0])]   # a real sphere, not its own image
     shift = np.zeros_like(x)
     if len(pairs) == 0:
@@ -89,7 +90,7 @@ def solid_fraction(x: np.ndarray, radius: float, lower, upper, spacing: float | 
     spacing = radius / 20 if spacing is None else spacing
     counts = np.maximum(np.round((upper - lower) / spacing).astype(int), 1)
     axes = [lower[a] + (np.arange(counts[a]) + 0.5) * (upper[a] - lower[a]) / counts[a] for a in range(3)]
-    tree = cKDTree(x)
+    tree = kd_tree(x)
     filled = 0
     for z in axes[2]:                           # a plane of points at a time: bounded memory
         gx, gy = np.meshgrid(axes[0], axes[1], indexing="ij")

@@ -11,8 +11,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial import cKDTree
 
+from .arrays import kd_tree
 from .collisions import wall_distances
 from .injection import NewParticles
 from .parallel import allreduce_sum
@@ -51,7 +51,7 @@ def place_releases(mesh, particles: ParticleState, walls, new: NewParticles) -> 
                   # strikes a position off, so this ends)
         placed = np.flatnonzero(choice >= 0)
         x = candidates[choice[placed], placed]
-        pairs = cKDTree(x).query_pairs(2 * float(new.radius.max(initial=0.0)), output_type="ndarray") \
+        pairs = kd_tree(x).query_pairs(2 * float(new.radius.max(initial=0.0)), output_type="ndarray") \
             if len(placed) > 1 else np.zeros((0, 2), np.int64)
         i, j = placed[np.sort(pairs, axis=1).T] if len(pairs) else (np.zeros(0, np.int64),) * 2
         clash = np.linalg.norm(candidates[choice[i], i] - candidates[choice[j], j], axis=1) \
@@ -76,7 +76,7 @@ def first_usable(usable: np.ndarray) -> np.ndarray:
 
 def overlaps(x: np.ndarray, radius: np.ndarray, points: np.ndarray, point_radius: np.ndarray) -> np.ndarray:
     """(m,) whether a sphere at each of ``points`` overlaps one of the spheres (x, radius)."""
-    found = cKDTree(x).query_ball_point(points, float(radius.max()) + point_radius)
+    found = kd_tree(x).query_ball_point(points, float(radius.max()) + point_radius)
     sizes = np.fromiter(map(len, found), np.int64, len(found))
     row = np.repeat(np.arange(len(found)), sizes)
     other = np.concatenate([np.asarray(f, np.int64) for f in found]) if sizes.sum() else np.zeros(0, np.int64)

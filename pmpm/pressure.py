@@ -21,9 +21,9 @@ choice can be overridden from the command line under the options prefix ``pressu
 from __future__ import annotations
 
 import numpy as np
-import scipy.sparse
 from petsc4py import PETSc
 
+from .arrays import csr_matrix
 from .errors import NumericalError
 
 DEFAULT_PC = "ml"
@@ -78,7 +78,7 @@ def assemble_cell_matrix(mesh, face_coefficient: np.ndarray, diagonal: np.ndarra
     vals.append(np.asarray(diagonal[:n_owned], dtype=float))
     rows, cols, vals = np.concatenate(rows), np.concatenate(cols), np.concatenate(vals)
     n_global = mesh.n_global_cells
-    csr = scipy.sparse.csr_matrix((vals, (rows, cols)), shape=(n_owned, n_global))
+    csr = csr_matrix(vals, rows, cols, (n_owned, n_global))
     csr.sum_duplicates()
     csr.sort_indices()
     matrix = PETSc.Mat().createAIJ(size=((n_owned, n_global), (n_owned, n_global)),

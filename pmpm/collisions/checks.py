@@ -5,8 +5,8 @@ from __future__ import annotations
 from itertools import chain
 
 import numpy as np
-from scipy.spatial import cKDTree
 
+from ..arrays import kd_tree
 from ..errors import CaseError
 from ..particles import ParticleState
 from .walls import Walls, wall_distances
@@ -21,7 +21,7 @@ def check_initial_particles(case, new, inside, walls: Walls | None) -> None:
         raise CaseError(f"{name}: particle {i}: centre {fmt(new.x[i])} is outside the domain")
     n = len(new)
     if n > 1:
-        tree = cKDTree(new.x)
+        tree = kd_tree(new.x)
         pairs = tree.query_pairs(2 * float(new.radius.max()), output_type="ndarray")
         dist = np.linalg.norm(new.x[pairs[:, 0]] - new.x[pairs[:, 1]], axis=1)
         bad = dist < (new.radius[pairs[:, 0]] + new.radius[pairs[:, 1]]) * (1 - 1e-9)
@@ -47,12 +47,12 @@ def overlaps_existing(state: ParticleState, new) -> np.ndarray:
     if m == 0:
         return bad
     if len(state):
-        found = cKDTree(state.x).query_ball_point(new.x, float(state.radius.max()) + new.radius)
+        found = kd_tree(state.x).query_ball_point(new.x, float(state.radius.max()) + new.radius)
         i, k = flatten(found)
         close = np.linalg.norm(state.x[k] - new.x[i], axis=1) < (state.radius[k] + new.radius[i]) * (1 - 1e-9)
         bad[i[close]] = True
     if m > 1:
-        pairs = cKDTree(new.x).query_pairs(2 * float(new.radius.max()), output_type="ndarray")
+        pairs = kd_tree(new.x).query_pairs(2 * float(new.radius.max()), output_type="ndarray")
         pairs = np.sort(pairs, axis=1)
         d = np.linalg.norm(new.x[pairs[:, 0]] - new.x[pairs[:, 1]], axis=1)
         pairs = pairs[d < (new.radius[pairs[:, 0]] + new.radius[pairs[:, 1]]) * (1 - 1e-9)]
