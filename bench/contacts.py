@@ -91,20 +91,26 @@ def bouncing_balls(baseline: str | None) -> None:
     python = str(ROOT / ".venv" / "bin" / "python")
     runs = ([("baseline " + baseline, Path(baseline))] if baseline else []) + [("this checkout", ROOT)]
     for label, tree in runs:
-        out = Path(tempfile.mkdtemp(prefix="pmpm_bench_bb_"))
-        env = dict(os.environ, OMP_NUM_THREADS="1")
-        if tree != ROOT:  # that checkout's pmpm, without writing into it
-            env.update(PYTHONPATH=str(tree), PYTHONDONTWRITEBYTECODE="1",
-                       NUMBA_CACHE_DIR=str(Path(tempfile.gettempdir()) / "pmpm_bench_numba_baseline"))
-        command = ["mpirun", *flags, "-n", "2", python, "-m", "pmpm", str(tree / "cases" / "bouncing_balls"),
-                   "--quiet", "--output", str(out / "warm-up")]
-        run_case(command + ["--set", "run.end_time=0.002"], tree, env)  # compiled kernels cached, files warm
-        command[-1] = str(out / "run")
-        seconds, _ = run_case(command, tree, env)
-        summary = json.loads((out / "run" / "summary.json").read_text())
-        stages = ", ".join(f"{k} {v:.1f}" for k, v in summary["wall_seconds"].items())
-        print(f"bouncing_balls 2 ranks ({label}): whole command {seconds:.1f} s; stages (rank 0, s): {stages}; "
-              f"{load()}", flush=True)
+        with tempfile.TemporaryDirectory(prefix="pmpm_bench_bb_") as name:
+            bouncing_balls_run(label, tree, Path(name), flags, python)
+
+
+def bouncing_balls_run(label: str, tree: Path, out: Path, flags: list, python: str) -> None:
+    """``cases/bouncing_balls`` on 2 ranks from the checkout ``tree``, its outputs in ``out``: prints the
+    whole command's seconds and the stages'."""
+    env = dict(os.environ, OMP_NUM_THREADS="1")
+    if tree != ROOT:  # that checkout's pmpm, without writing into it
+        env.update(PYTHONPATH=str(tree), PYTHONDONTWRITEBYTECODE="1",
+                   NUMBA_CACHE_DIR=str(Path(tempfile.gettempdir()) / "pmpm_bench_numba_baseline"))
+    command = ["mpirun", *flags, "-n", "2", python, "-m", "pmpm", str(tree / "cases" / "bouncing_balls"),
+               "--quiet", "--output", str(out / "warm-up")]
+    run_case(command + ["--set", "run.end_time=0.002"], tree, env)  # compiled kernels cached, files warm
+    command[-1] = str(out / "run")
+    seconds, _ = run_case(command, tree, env)
+    summary = json.loads((out / "run" / "summary.json").read_text())
+    stages = ", ".join(f"{k} {v:.1f}" for k, v in summary["wall_seconds"].items())
+    print(f"bouncing_balls 2 ranks ({label}): whole command {seconds:.1f} s; stages (rank 0, s): {stages}; "
+          f"{load()}", flush=True)
 
 
 def stepping(state, walls, settings, dt, steps, gravity=(0.0, 0.0, -G), skip=5):

@@ -1,7 +1,7 @@
 """DEM-only hopper discharge (no flow), pmpm against LIGGGHTS on the same work.
 
     OMP_NUM_THREADS=1 .venv/bin/python bench/hopper.py [N [SIM_TIME [DT]]] [--ranks 1,2] [--repeat 3] [--no-peer]
-                                                       [--one-core]
+                                                       [--one-core] [--keep]
     # defaults: 10000 particles, 1.0 s, 2e-3 s, 1 and 2 ranks, each timed 3 times, LIGGGHTS too
 
 The peer's geometry and particles (../shared/peers/liggghts_hopper.sh): conical hopper, orifice D0 =
@@ -30,12 +30,14 @@ the ratio to one rank's says what several ranks do beyond one, apart from the wa
 other core's stops cause (at most: on one core the ranks also switch at each exchange and refill
 their caches; docs/collisions_log.md, "Twentieth session"); then ``bench/cpu_gaps.py --pace-only``
 measures, for 20 s, what two cores in step lose to each other's slow spells on this machine in that
-hour (docs/collisions.md, "Speed on 2 ranks").
+hour (docs/collisions.md, "Speed on 2 ranks"). The runs' folder (in the system's temporary folder, every
+run's outputs) is removed at the end; ``--keep`` keeps it and prints where it is.
 """
 import argparse
 import json
 import os
 import re
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -145,11 +147,25 @@ def main():
     parser.add_argument("--no-peer", action="store_true")
     parser.add_argument("--one-core", action="store_true",
                         help="also time each rank count with every rank on one core: the work the ranks do")
+    parser.add_argument("--keep", action="store_true",
+                        help="keep the runs' folder (its path printed at the end) instead of removing it")
     args = parser.parse_args()
+    # every run writes its outputs there: removed at the end unless --keep
+    folder = Path(tempfile.mkdtemp(prefix="pmpm_hopper_"))
+    try:
+        benchmark(folder, args)
+    finally:
+        if args.keep:
+            print(f"(runs in {folder})")
+        else:
+            shutil.rmtree(folder, ignore_errors=True)
+
+
+def benchmark(folder: Path, args) -> None:
+    """The fill, the timed discharges and the peer's, in ``folder``; prints the figures."""
     count, sim_time, dt, repeat = args.count, args.sim_time, args.dt, args.repeat
     rank_counts = [int(n) for n in args.ranks.split(",")]
     import meshio
-    folder = Path(tempfile.mkdtemp(prefix="pmpm_hopper_"))
     meshio.write(str(folder / "hopper.msh"), hopper_mesh(), file_format="gmsh22", binary=False)
     xyz = particles(count)
     table = np.column_stack([xyz, np.full(len(xyz), DIAMETER / 2), np.full(len(xyz), DENSITY)])
