@@ -87,17 +87,17 @@ def run_case(command, cwd, env) -> tuple[float, dict]:
 
 
 def bouncing_balls(baseline: str | None) -> None:
-    flags = ["--oversubscribe", "--quiet"] + (["--allow-run-as-root"] if os.geteuid() == 0 else [])
-    python = str(ROOT / ".venv" / "bin" / "python")
     runs = ([("baseline " + baseline, Path(baseline))] if baseline else []) + [("this checkout", ROOT)]
     for label, tree in runs:
         with tempfile.TemporaryDirectory(prefix="pmpm_bench_bb_") as name:
-            bouncing_balls_run(label, tree, Path(name), flags, python)
+            bouncing_balls_run(label, tree, Path(name))
 
 
-def bouncing_balls_run(label: str, tree: Path, out: Path, flags: list, python: str) -> None:
+def bouncing_balls_run(label: str, tree: Path, out: Path) -> None:
     """``cases/bouncing_balls`` on 2 ranks from the checkout ``tree``, its outputs in ``out``: prints the
     whole command's seconds and the stages'."""
+    flags = ["--oversubscribe", "--quiet"] + (["--allow-run-as-root"] if os.geteuid() == 0 else [])
+    python = str(ROOT / ".venv" / "bin" / "python")
     env = dict(os.environ, OMP_NUM_THREADS="1")
     if tree != ROOT:  # that checkout's pmpm, without writing into it
         env.update(PYTHONPATH=str(tree), PYTHONDONTWRITEBYTECODE="1",
