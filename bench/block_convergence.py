@@ -1,7 +1,7 @@
 """How far one dense step's solve is from converged, on 1 and 2 ranks: the block Gauss–Seidel's
 accuracy near the cut (docs/collisions.md, "Accuracy on several ranks").
 
-    OMP_NUM_THREADS=1 .venv/bin/python bench/block_convergence.py [--sweeps 20,30,40] [--count 1500]
+    OMP_NUM_THREADS=1 .venv/bin/python bench/block_convergence.py [--sweeps 20,30,40] [--count 1500] [--keep]
 
 The tests' small hopper (1,500 spheres, d = 4 mm, ``test_small_hopper_on_one_and_two_ranks``)
 discharges for 0.3 s on 1 rank (ending in a checkpoint, which holds the contacts' impulses). From
@@ -10,10 +10,13 @@ each ``--sweeps`` budget (``collisions.dense_sweeps``) on 1 rank and on 2 ranks 
 Gauss–Seidel (``gather_contacts = 0``). Printed per run: the RMS over the particles of
 |v − v_ref| / RMS |v_ref| after the step, overall, within 2 d of the 2-rank cut (the bisection's:
 the median of the longest horizontal extent) and beyond. One step from the same start is
-deterministic, where discharge counts spread by ~3 % between runs that differ by round-off.
+deterministic, where discharge counts spread by ~3 % between runs that differ by round-off. The
+runs' folder (in the system's temporary folder) is removed at the end; ``--keep`` keeps it and
+prints where it is.
 """
 import argparse
 import os
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -47,12 +50,25 @@ def main():
     parser = argparse.ArgumentParser(description="one dense step's distance from converged, 1 and 2 ranks")
     parser.add_argument("--sweeps", default="20,30,40")
     parser.add_argument("--count", type=int, default=1500)
+    parser.add_argument("--keep", action="store_true",
+                        help="keep the runs' folder (its path printed at the end) instead of removing it")
     args = parser.parse_args()
+    folder = Path(tempfile.mkdtemp(prefix="pmpm_block_"))
+    try:
+        convergence(folder, args)
+    finally:
+        if args.keep:
+            print(f"(runs in {folder})")
+        else:
+            shutil.rmtree(folder, ignore_errors=True)
+
+
+def convergence(folder: Path, args) -> None:
+    """The start, the reference step and one step per budget and rank count, in ``folder``; prints the errors."""
     import meshio
     from hopper import CASE
     from hopper_mesh import DENSITY, DIAMETER, hopper_mesh, particles
     budgets = [int(s) for s in args.sweeps.split(",")]
-    folder = Path(tempfile.mkdtemp(prefix="pmpm_block_"))
     meshio.write(str(folder / "hopper.msh"), hopper_mesh(), file_format="gmsh22", binary=False)
     xyz = particles(args.count)
     table = np.column_stack([xyz, np.full(len(xyz), DIAMETER / 2), np.full(len(xyz), DENSITY)])
@@ -84,7 +100,6 @@ def main():
             error = np.sqrt(((final[:, 5:8] - v_ref) ** 2).sum(1)) / scale
             rms = [np.sqrt((error[part] ** 2).mean()) for part in (slice(None), near, ~near)]
             print(f"{ranks:>5} {sweeps:>6} {rms[0]:>7.4f} {rms[1]:>9.4f} {rms[2]:>7.4f}", flush=True)
-    print(f"(runs in {folder})")
 
 
 if __name__ == "__main__":
