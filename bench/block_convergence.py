@@ -16,10 +16,8 @@ prints where it is.
 """
 import argparse
 import os
-import shutil
 import subprocess
 import sys
-import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -27,6 +25,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tools"))
 sys.path.insert(0, str(ROOT / "bench"))
+from runs_folder import add_keep_option, runs_folder  # noqa: E402
 START, DT, REFERENCE_SWEEPS = 0.3, 2e-3, 2000
 
 
@@ -50,17 +49,10 @@ def main():
     parser = argparse.ArgumentParser(description="one dense step's distance from converged, 1 and 2 ranks")
     parser.add_argument("--sweeps", default="20,30,40")
     parser.add_argument("--count", type=int, default=1500)
-    parser.add_argument("--keep", action="store_true",
-                        help="keep the runs' folder (its path printed at the end) instead of removing it")
+    add_keep_option(parser)
     args = parser.parse_args()
-    folder = Path(tempfile.mkdtemp(prefix="pmpm_block_"))
-    try:
+    with runs_folder("pmpm_block_", args.keep) as folder:   # every run's outputs
         convergence(folder, args)
-    finally:
-        if args.keep:
-            print(f"(runs in {folder})")
-        else:
-            shutil.rmtree(folder, ignore_errors=True)
 
 
 def convergence(folder: Path, args) -> None:

@@ -37,10 +37,8 @@ import argparse
 import json
 import os
 import re
-import shutil
 import subprocess
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -51,6 +49,7 @@ FILL_TIME = 0.6
 PEER = ROOT.parent / "shared" / "peers" / "liggghts_hopper.sh"
 sys.path.insert(0, str(ROOT / "tools"))
 from hopper_mesh import DENSITY, DIAMETER, ORIFICE, hopper_mesh, particles  # noqa: E402
+from runs_folder import add_keep_option, runs_folder  # noqa: E402
 from pmpm.reference import beverloo_mass_rate  # noqa: E402
 
 CASE = """
@@ -147,18 +146,10 @@ def main():
     parser.add_argument("--no-peer", action="store_true")
     parser.add_argument("--one-core", action="store_true",
                         help="also time each rank count with every rank on one core: the work the ranks do")
-    parser.add_argument("--keep", action="store_true",
-                        help="keep the runs' folder (its path printed at the end) instead of removing it")
+    add_keep_option(parser)
     args = parser.parse_args()
-    # every run writes its outputs there: removed at the end unless --keep
-    folder = Path(tempfile.mkdtemp(prefix="pmpm_hopper_"))
-    try:
+    with runs_folder("pmpm_hopper_", args.keep) as folder:   # every run's outputs
         benchmark(folder, args)
-    finally:
-        if args.keep:
-            print(f"(runs in {folder})")
-        else:
-            shutil.rmtree(folder, ignore_errors=True)
 
 
 def benchmark(folder: Path, args) -> None:
