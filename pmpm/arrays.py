@@ -20,6 +20,15 @@ def sum_rows(index: np.ndarray, values: np.ndarray, n: int) -> np.ndarray:
     return np.column_stack([summed(index, values[:, d], n) for d in range(3)])
 
 
+def members(values: np.ndarray, ascending: np.ndarray) -> np.ndarray:
+    """(len(values),) bool: which of ``values`` are in ``ascending`` (sorted): np.isin by binary
+    search, without np.isin's sort of both (a few times faster on the arrays of a contact step)."""
+    at = np.searchsorted(ascending, values)
+    found = at < len(ascending)
+    found[found] = ascending[at[found]] == values[found]
+    return found
+
+
 def cross(a, b) -> np.ndarray:
     """a × b for 3-vectors or (k, 3) rows, broadcast (np.cross is slow on small arrays)."""
     a, b = np.asarray(a), np.asarray(b)

@@ -127,7 +127,7 @@ def migrate_particles(comm, exits, state: RunState, start: np.ndarray, dt: float
         begin = np.searchsorted(contacts.first_id, particles.id[gone], "left")   # each one's contacts: a range
         count = np.searchsorted(contacts.first_id, particles.id[gone], "right") - begin
         follows = np.repeat(begin - np.cumsum(count) + count, count) + np.arange(count.sum())
-        groups.append((np.repeat(owner[gone], count), memory_rows(contacts, follows)))
+        groups.append((np.repeat(owner[gone], count), contacts.packed(follows)))
     (arrived, _), *arrived_contacts = exchanged(comm, *groups)
     keep = np.ones(len(particles), bool)
     keep[gone] = False
@@ -138,16 +138,9 @@ def migrate_particles(comm, exits, state: RunState, start: np.ndarray, dt: float
     return replace(state, **changes)
 
 
-def memory_rows(contacts: ContactMemory, rows: np.ndarray) -> np.ndarray:
-    """(len(rows), 6) the remembered contacts' ``rows`` as float64: first and second id, the normal
-    impulse, the tangential impulse (ids exact below 2^53)."""
-    return np.column_stack([contacts.first_id[rows], contacts.second_id[rows], contacts.normal_impulse[rows],
-                            contacts.tangential_impulse[rows]]).astype(float)
-
-
 def spliced(memory: ContactMemory, drop: np.ndarray, block: np.ndarray) -> ContactMemory:
     """``memory`` less its rows ``drop`` (indices), with the contacts of ``block`` (rows as from
-    ``memory_rows``, any order) in their places by (first_id, second_id): one compiled merge (a
+    ``ContactMemory.packed``, any order) in their places by (first_id, second_id): one compiled merge (a
     step's migration changes a few rows of thousands)."""
     first_id, second_id = block[:, 0].astype(np.int64), block[:, 1].astype(np.int64)
     order = np.argsort(ContactMemory.key_of(first_id, second_id), kind="stable")

@@ -217,12 +217,6 @@ def particle_rows(particles: ParticleState, rows: np.ndarray | None = None) -> d
     return {name: getattr(particles, name).take(rows, axis=0) for name in PARTICLE_FIELDS}
 
 
-def particles_of(rows: dict) -> ParticleState:
-    """A ``ParticleState`` of the rows (dict of its fields), sorted by id."""
-    order = np.argsort(rows["id"], kind="stable")
-    return ParticleState(**{name: np.asarray(rows[name])[order] for name in PARTICLE_FIELDS})
-
-
 def gather(comm, particles: ParticleState) -> ParticleState:
     """Collective. Every rank's particles on every rank, sorted by id (for output and checkpoints)."""
     return gather_with(comm, particles)[0]

@@ -72,6 +72,23 @@ def exchanged(comm, *groups: tuple) -> list[tuple[np.ndarray, np.ndarray]]:
     return result
 
 
+def gathered(comm, *blocks: np.ndarray) -> list[np.ndarray]:
+    """Collective. Per block (float64 rows; a block's width the same on every rank): every rank's
+    rows on every rank, in rank order. One gather of counts for all, one of rows per block."""
+    counts = np.empty((comm.size, len(blocks)), np.int64)
+    comm.Allgather(np.array([len(block) for block in blocks], np.int64), counts)
+    offsets = np.zeros((comm.size + 1, len(blocks)), np.int64)
+    np.cumsum(counts, axis=0, out=offsets[1:])
+    result = []
+    for g, block in enumerate(blocks):
+        width = block.shape[1]
+        received = np.empty((int(offsets[-1, g]), width))
+        comm.Allgatherv(np.ascontiguousarray(block, float),
+                        [received, counts[:, g] * width, offsets[:-1, g] * width, MPI.DOUBLE])
+        result.append(received)
+    return result
+
+
 @njit(cache=True)
 def _by_rank(destination, ranks):
     """The rows with a destination rank (>= 0), grouped by it in their order (a stable counting

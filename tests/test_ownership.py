@@ -105,7 +105,7 @@ def test_spliced_memory_is_the_sorted_rows_less_those_dropped_plus_those_added()
     drops and insertions at the same place, next to each other, at both ends, none, and wall
     contacts (second_id < 0) beside particle ones of the same first particle."""
     from pmpm.collisions import ContactMemory
-    from pmpm.migration import memory_rows, spliced
+    from pmpm.migration import spliced
     rng = np.random.default_rng(3)
     pairs = sorted({(int(a), int(b)) for a, b in zip(rng.integers(0, 20, 60), rng.integers(-3, 40, 60))})[:30]
     first, second = (np.array(column, np.int64) for column in zip(*pairs))   # (held: sorted, distinct)
@@ -115,13 +115,17 @@ def test_spliced_memory_is_the_sorted_rows_less_those_dropped_plus_those_added()
     for drop, added in cases:
         ids = np.array(added, np.int64).reshape(-1, 2)
         new = ContactMemory(ids[:, 0], ids[:, 1], rng.random(len(ids)), rng.random((len(ids), 3)))
-        result = spliced(memory, np.array(drop, np.int64), memory_rows(new, np.arange(len(new))[::-1]))
+        result = spliced(memory, np.array(drop, np.int64), new.packed(np.arange(len(new))[::-1]))
         keep = np.setdiff1d(np.arange(30), drop)
         every = {name: np.concatenate([getattr(memory, name)[keep], getattr(new, name)])
                  for name in ("first_id", "second_id", "normal_impulse", "tangential_impulse")}
         order = np.lexsort((every["second_id"], every["first_id"]))
         for name, values in every.items():
             np.testing.assert_array_equal(getattr(result, name), values[order])
+    # the rows as they travel, read back in any order: the memory itself, bit for bit
+    back = ContactMemory.of_packed(memory.packed(rng.permutation(30)))
+    for name in ("first_id", "second_id", "normal_impulse", "tangential_impulse"):
+        np.testing.assert_array_equal(getattr(back, name), getattr(memory, name))
 
 
 def test_block_sweep_set_up_against_plain_numpy():

@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from pmpm.packed import exchanged, merged, packed
+from pmpm.packed import exchanged, gathered, merged, packed
 from pmpm.particles import ParticleState
 
 
@@ -42,6 +42,18 @@ def test_packed_rows_merge_by_id_as_a_sort_would():
         np.testing.assert_array_equal(getattr(back, name), getattr(own, name)[[0, 5, 199]])
 
 
+def test_members_of_a_sorted_set_are_those_isin_finds():
+    """``arrays.members`` against np.isin: values below, between, on and past the set's ends,
+    repeated, an empty set and no values."""
+    from pmpm.arrays import members
+    rng = np.random.default_rng(5)
+    ascending = np.unique(rng.integers(10, 90, 30))
+    values = rng.integers(0, 100, 400)
+    np.testing.assert_array_equal(members(values, ascending), np.isin(values, ascending))
+    assert not members(values, ascending[:0]).any()
+    assert members(ascending[:0], ascending).shape == (0,)
+
+
 @pytest.mark.mpi
 def test_rows_reach_the_ranks_they_are_sent_to(comm):
     """Each rank sends rows to every rank, itself included (r + 1 rows to rank r, in no order, and
@@ -62,6 +74,21 @@ def test_rows_reach_the_ranks_they_are_sent_to(comm):
     for r in range(size):   # each sender's rows, in the order it sent them
         np.testing.assert_array_equal(got[offsets[r]:offsets[r + 1], 2], np.flatnonzero(every[r] == rank))
     np.testing.assert_array_equal(got_narrow[:, 0], expected_from + 0.5)
+
+
+@pytest.mark.mpi
+def test_every_rank_gets_every_ranks_rows_in_rank_order(comm):
+    """Rank r gathers r rows of width 3 and 2r + 1 of width 1 (rank 0: none of the first): every
+    rank receives them all, rank 0's first, each rank's in its order."""
+    rank = comm.rank
+    wide = np.column_stack([np.full(rank, rank), np.arange(rank), -np.arange(rank)]).astype(float)
+    narrow = np.arange(2 * rank + 1, dtype=float)[:, None] + 100 * rank
+    got_wide, got_narrow = gathered(comm, wide, narrow)
+    every = range(comm.size)
+    np.testing.assert_array_equal(got_wide[:, 0], np.concatenate([np.full(r, r) for r in every]))
+    np.testing.assert_array_equal(got_wide[:, 1], np.concatenate([np.arange(r) for r in every]))
+    np.testing.assert_array_equal(got_wide[:, 2], -got_wide[:, 1])
+    np.testing.assert_array_equal(got_narrow[:, 0], np.concatenate([np.arange(2 * r + 1) + 100 * r for r in every]))
 
 
 @pytest.mark.mpi

@@ -106,6 +106,19 @@ class ContactMemory:
                    np.asarray(arrays["normal_impulse"], float).reshape(-1),
                    np.asarray(arrays["tangential_impulse"], float).reshape(-1, 3))
 
+    def packed(self, rows: np.ndarray) -> np.ndarray:
+        """(len(rows), 6) float64 rows of the contacts ``rows`` (indices): first and second id, the
+        normal impulse, the tangential impulse (ids exact below 2^53): what moves between ranks."""
+        return np.column_stack([self.first_id[rows], self.second_id[rows], self.normal_impulse[rows],
+                                self.tangential_impulse[rows]]).astype(float)
+
+    @classmethod
+    def of_packed(cls, block: np.ndarray) -> "ContactMemory":
+        """The contacts of ``block`` (rows as from ``packed``, any order), sorted by (first_id, second_id)."""
+        first_id, second_id = block[:, 0].astype(np.int64), block[:, 1].astype(np.int64)
+        order = np.argsort(cls.key_of(first_id, second_id), kind="stable")
+        return cls(first_id[order], second_id[order], block[order, 2], block[order, 3:6])
+
     @property
     def keys(self) -> np.ndarray:
         """(k,) int64, one key per contact remembered, ascending (``key_of``)."""

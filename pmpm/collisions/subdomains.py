@@ -41,8 +41,10 @@ from .settings import COLD_SWEEPS, ENERGY_TOL, SEARCH_SLACK, SWEEP_TOL, Collisio
 from .solver import Bodies, ContactStep, advance_with_collisions, remove_overlaps
 from .stats import CLAMPS, DEPOSITED, EXTRA, NAMES, SWEEPS, as_dict, new_counters
 from .walls import Walls
+from ..arrays import members
 from ..halo import Halo, Pass
-from ..ownership import Partition, particle_rows, particles_of
+from ..ownership import Partition
+from ..packed import gathered, merged, packed
 from ..particles import FREE, ParticleState
 
 
@@ -149,18 +151,14 @@ def gathered_step(comm, state, local, halo, record, walls, dt, settings, memory,
     involved = np.zeros(n + 1, bool)
     involved[record.first] = True
     involved[record.second] = True
-    involved = involved[:n] & halo.owned
+    sending = np.flatnonzero(involved[:n] & halo.owned)
     # the memory of the contacts of the particles sent (those whose lower-id particle is owned here)
-    held = np.isin(memory.first_id, local.id[involved])
-    sent = (particle_rows(local, np.flatnonzero(involved)),
-            {name: values[held] for name, values in memory.to_arrays().items()})
-    halo.sent += (comm.size - 1) * sum(values.nbytes for part in sent for values in part.values())
-    parts = comm.allgather(sent)
-    cluster = particles_of({name: np.concatenate([part[0][name] for part in parts]) for name in parts[0][0]})
-    joined = {name: np.concatenate([part[1][name] for part in parts]) for name in parts[0][1]}
-    order = np.argsort(ContactMemory.key_of(joined["first_id"], joined["second_id"]), kind="stable")
-    memory = ContactMemory(*(joined[name][order] for name in ("first_id", "second_id", "normal_impulse",
-                                                               "tangential_impulse")))
+    held = np.flatnonzero(members(memory.first_id, local.id[sending]))
+    sent = (packed(local, sending), memory.packed(held))
+    halo.sent += (comm.size - 1) * sum(block.nbytes for block in sent)
+    particles, contacts = gathered(comm, *sent)
+    cluster = merged(ParticleState.empty(), particles)[0]   # (sorted by id)
+    memory = ContactMemory.of_packed(contacts)
     result = advance_with_collisions(cluster, walls, dt, settings, memory, speed=speed, population=population)
     # owned particles out of every contact fly at their velocity (fixed and deposited ones stay)
     moving = state.moving
@@ -171,7 +169,7 @@ def gathered_step(comm, state, local, halo, record, walls, dt, settings, memory,
     rows, source = np.flatnonzero(found), at[found]
     for name in ("x", "v", "omega", "deposited"):
         getattr(state, name)[rows] = getattr(cluster, name)[source]
-    mine = np.isin(result.memory.first_id, state.id)
+    mine = members(result.memory.first_id, state.id)
     kept = ContactMemory(result.memory.first_id[mine], result.memory.second_id[mine],
                          result.memory.normal_impulse[mine], result.memory.tangential_impulse[mine])
     return ContactStep(dict(result.stats), kept, result.walls)
