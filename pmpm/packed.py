@@ -1,9 +1,11 @@
-"""Particle rows as one block of float64 columns: what moves between ranks (ghosts, migration).
+"""Particle rows as one block of float64 columns: what moves between ranks (ghosts, migration, the
+particles a gathered contact step takes on every rank).
 
 A ``ParticleState``'s fields are a dozen arrays; moving some rows of each to another rank took a
 take, a message part and a join per field. Here the rows are packed side by side in one compiled
-pass, sent as one buffer per rank pair, and merged into the receiver's rows (sorted by id) in one
-compiled pass. Ids, motion codes and deposition flags travel as float64 (ids exact below 2^53).
+pass, sent as one buffer per rank pair (``exchanged``) or to every rank (``gathered``), and merged
+into the receiver's rows (sorted by id) in one compiled pass. Ids, motion codes and deposition
+flags travel as float64 (ids exact below 2^53).
 """
 from __future__ import annotations
 
