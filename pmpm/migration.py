@@ -142,37 +142,36 @@ def spliced(memory: ContactMemory, drop: np.ndarray, block: np.ndarray) -> Conta
     """``memory`` less its rows ``drop`` (indices), with the contacts of ``block`` (rows as from
     ``ContactMemory.packed``, any order) in their places by (first_id, second_id): one compiled merge (a
     step's migration changes a few rows of thousands)."""
-    first_id, second_id = block[:, 0].astype(np.int64), block[:, 1].astype(np.int64)
-    order = np.argsort(ContactMemory.key_of(first_id, second_id), kind="stable")
+    added = ContactMemory.of_packed(block)
     keep = np.ones(len(memory), bool)
     keep[drop] = False
-    n = int(keep.sum()) + len(block)
+    n = int(keep.sum()) + len(added)
     result = ContactMemory(np.empty(n, np.int64), np.empty(n, np.int64), np.empty(n), np.empty((n, 3)))
-    _splice(memory.first_id, memory.second_id, memory.normal_impulse, memory.tangential_impulse, keep,
-            first_id, second_id, block, order, result.first_id, result.second_id, result.normal_impulse,
-            result.tangential_impulse)
+    _splice((memory.first_id, memory.second_id, memory.normal_impulse, memory.tangential_impulse), keep,
+            (added.first_id, added.second_id, added.normal_impulse, added.tangential_impulse),
+            (result.first_id, result.second_id, result.normal_impulse, result.tangential_impulse))
     return result
 
 
 @njit(cache=True)
-def _splice(first, second, normal, tangential, keep, new_first, new_second, block, order,
-            out_first, out_second, out_normal, out_tangential):
-    """The rows where ``keep`` (sorted by (first, second)) and the block's rows in ``order`` merged
-    by (first, second) into the out_ arrays, an added row before a kept one of the same key."""
-    n, m = len(first), len(order)
+def _splice(kept, keep, added, out):
+    """The rows of ``kept`` where ``keep`` and all of ``added`` (each a memory's (first, second,
+    normal, tangential), sorted by (first, second)) merged by (first, second) into ``out``, an added
+    row before a kept one of the same key."""
+    first, second, normal, tangential = kept
+    new_first, new_second, new_normal, new_tangential = added
+    out_first, out_second, out_normal, out_tangential = out
+    n, m = len(first), len(new_first)
     i, j = 0, 0
     for k in range(len(out_first)):
         while i < n and not keep[i]:
             i += 1
-        if j < m:
-            a = order[j]
-            added = i == n or new_first[a] < first[i] or (new_first[a] == first[i] and new_second[a] <= second[i])
-        else:
-            added = False
-        if added:
-            out_first[k], out_second[k], out_normal[k] = new_first[a], new_second[a], block[a, 2]
+        take_added = j < m and (i == n or new_first[j] < first[i]
+                                or (new_first[j] == first[i] and new_second[j] <= second[i]))
+        if take_added:
+            out_first[k], out_second[k], out_normal[k] = new_first[j], new_second[j], new_normal[j]
             for d in range(3):
-                out_tangential[k, d] = block[a, 3 + d]
+                out_tangential[k, d] = new_tangential[j, d]
             j += 1
         else:
             out_first[k], out_second[k], out_normal[k] = first[i], second[i], normal[i]
