@@ -19,7 +19,7 @@ from . import checkpoint, checks, io, reporting
 from .bodies import Body, build_bodies
 from .case import Case, case_path, load_case, suggest
 from .collisions import (CollisionSettings, advance_with_collisions, build_walls, check_initial_particles,
-                         collision_settings)
+                         collision_settings, jit)
 from .collisions.subdomains import advance_owned
 from .coupling import CouplingMemory, External, PatchForcing, PenaltyForcing, build_forcing
 from .coupling.bodies import BodyForcing
@@ -134,14 +134,19 @@ def largest_diameter(case: Case) -> float:
     return 2.0 * max(radii)
 
 
+def has_walls(case: Case) -> bool:
+    """Whether the particles of ``case`` meet walls (collisions, field forces, deposition): the run
+    then builds them, and loads (or first compiles) the contact kernels."""
+    return bool(case.collisions or case.field_forces or case.deposition)
+
+
 def initial_state(model: Model, case_particles: bool = True) -> RunState:
     """Collective. The state at t = 0: fluid at rest, the case's particles (checked: inside the
     domain, not overlapping each other or a wall); without ``case_particles`` none (a restart,
     whose checkpoint holds the particles: checking the case's would take a quarter of a second
     per 10,000)."""
     case, mesh = model.case, model.mesh
-    walls = (build_walls(case, mesh, model.bodies) if (case.collisions or case.field_forces or case.deposition)
-             else None)
+    walls = build_walls(case, mesh, model.bodies) if has_walls(case) else None
     fluid = model.flow.initial_state() if model.flow is not None else None
     state = RunState(0.0, 0, ParticleState.empty(), fluid, np.zeros((0, 3)), np.zeros((0, 3)),
                      np.zeros(mesh.n_local_cells) if fluid is not None else None, next_id=0, removed=0,
@@ -402,6 +407,9 @@ def run_from_arguments(comm, arguments) -> None:
     case = load_case(case_path(arguments.case), arguments.set)
     output = Path(arguments.output) if arguments.output else case.folder / "output"
     checks.before_building(comm, case)
+    if not arguments.check and comm.rank == 0 and has_walls(case) and not jit.cache_is_current():
+        print0(comm, "pmpm: compiling the contact kernels first (once after installing or updating pmpm; numba "
+                     "keeps them for later runs): the set-up and the first steps take a while longer")
     restart = checkpoint.read(comm, Path(arguments.restart)) if arguments.restart else None
     start = wallclock.perf_counter()
     mesh = build_mesh(comm, case)

@@ -305,3 +305,36 @@ def test_injection_into_a_closed_box_of_fluid_is_warned_about(tmp_path):
     with_outlet = text + "[boundary.zmax]\ntype = \"outlet\"\n"
     _, err = accepted(run_in_process(make_case(tmp_path, with_outlet), "--check"))
     assert "no outlet" not in err
+
+
+# -- what a run says before it starts ----------------------------------------------------------
+def test_a_run_says_when_it_compiles_the_contact_kernels_first(tmp_path, monkeypatch):
+    """The contact kernels' cache counts as current only where its stamp is the digest of the
+    compiled modules' sources (none in a fresh clone, another after an update): a run whose
+    particles meet walls then says first that it compiles them; with the cache current, without
+    walls, or with --check, it says nothing of it."""
+    from pmpm.collisions import jit
+    monkeypatch.delenv("NUMBA_CACHE_DIR", raising=False)
+    folder = tmp_path / "__pycache__"
+    assert not jit.cache_is_current(folder)
+    folder.mkdir()
+    (folder / "kernels.sha1").write_text("0" * 40)
+    assert not jit.cache_is_current(folder)
+    (folder / "kernels.sha1").write_text(jit.sources_digest())
+    assert jit.cache_is_current(folder)
+    # a run, with the package's cache taken as stale and then as current
+    message = "pmpm: compiling the contact kernels first"
+    (tmp_path / "walls").mkdir()
+    (tmp_path / "balls").mkdir()
+    walls = make_case(tmp_path / "walls", BALLS + "[collisions]\nrestitution = 0.5\n")
+    no_walls = make_case(tmp_path / "balls", BALLS)
+    monkeypatch.setattr(jit, "cache_is_current", lambda: False)
+    out, _ = accepted(run_in_process(walls, "--quiet"))
+    assert out.startswith(message)
+    out, _ = accepted(run_in_process(no_walls, "--quiet"))
+    assert message not in out
+    out, _ = accepted(run_in_process(walls, "--check"))
+    assert message not in out
+    monkeypatch.setattr(jit, "cache_is_current", lambda: True)
+    out, _ = accepted(run_in_process(walls, "--quiet", "--output", tmp_path / "again"))
+    assert message not in out

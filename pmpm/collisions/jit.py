@@ -22,11 +22,28 @@ COMPILED = ("block", "cell_list", "contact_times", "deposition", "event_queue", 
             "messages", "narrow", "settings", "stats", "step_arrays", "wall_grid")  # and what they import
 
 
+def sources_digest() -> str:
+    """A digest of the compiled modules' sources: the cache was made from them while it is unchanged."""
+    return hashlib.sha1(b"".join((HERE / f"{name}.py").read_bytes() for name in COMPILED)).hexdigest()
+
+
+def cache_is_current(folder: Path = HERE / "__pycache__") -> bool:
+    """Whether the kernels' cache in ``folder`` was made from these sources (its stamp), so that a
+    run loads them instead of compiling them; true where pmpm cannot tell (``NUMBA_CACHE_DIR``
+    set, or a package it cannot write, whose kernels numba caches elsewhere). Reads only."""
+    if os.environ.get("NUMBA_CACHE_DIR") or not os.access(folder if folder.exists() else folder.parent, os.W_OK):
+        return True
+    try:
+        return (folder / "kernels.sha1").read_text() == sources_digest()
+    except OSError:
+        return False
+
+
 def clear_stale_cache() -> None:
     """Remove this package's numba cache files if any of its sources changed since they were made."""
     if os.environ.get("NUMBA_CACHE_DIR"):
         return
-    digest = hashlib.sha1(b"".join((HERE / f"{name}.py").read_bytes() for name in COMPILED)).hexdigest()
+    digest = sources_digest()
     folder = HERE / "__pycache__"
     stamp = folder / "kernels.sha1"
     try:
