@@ -62,8 +62,7 @@ def exchanged(comm, *groups: tuple) -> list[tuple[np.ndarray, np.ndarray]]:
         starts.append(bounds[:-1])
     arriving = np.empty_like(counts)
     comm.Alltoall(counts, arriving)
-    offsets = np.zeros((comm.size + 1, len(groups)), np.int64)
-    np.cumsum(arriving, axis=0, out=offsets[1:])
+    offsets = _offsets(arriving)
     result = []
     for g, block in enumerate(sent):
         width = block.shape[1]
@@ -79,8 +78,7 @@ def gathered(comm, *blocks: np.ndarray) -> list[np.ndarray]:
     rows on every rank, in rank order. One gather of counts for all, one of rows per block."""
     counts = np.empty((comm.size, len(blocks)), np.int64)
     comm.Allgather(np.array([len(block) for block in blocks], np.int64), counts)
-    offsets = np.zeros((comm.size + 1, len(blocks)), np.int64)
-    np.cumsum(counts, axis=0, out=offsets[1:])
+    offsets = _offsets(counts)
     result = []
     for g, block in enumerate(blocks):
         width = block.shape[1]
@@ -89,6 +87,14 @@ def gathered(comm, *blocks: np.ndarray) -> list[np.ndarray]:
                         [received, counts[:, g] * width, offsets[:-1, g] * width, MPI.DOUBLE])
         result.append(received)
     return result
+
+
+def _offsets(counts: np.ndarray) -> np.ndarray:
+    """(ranks + 1, groups): where each rank's rows begin among those received, per group (the
+    total last), from the counts (ranks, groups)."""
+    offsets = np.zeros((len(counts) + 1, counts.shape[1]), np.int64)
+    np.cumsum(counts, axis=0, out=offsets[1:])
+    return offsets
 
 
 @njit(cache=True)

@@ -10,6 +10,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from .arrays import members
 from .collisions import ContactMemory, Walls
 from .coupling import CouplingMemory
 from .fluid import FluidState
@@ -84,8 +85,6 @@ class RunState:
         mine = partition.owner_of(particles.x) == rank
         contacts = self.contacts
         if contacts is not None:
-            kept = np.isin(contacts.first_id, particles.id[mine])
-            contacts = ContactMemory(contacts.first_id[kept], contacts.second_id[kept], contacts.normal_impulse[kept],
-                                     contacts.tangential_impulse[kept])
+            contacts = contacts.take(members(contacts.first_id, particles.id[mine]))
         return replace(self, particles=particles.without(~mine), hydro_force=self.hydro_force[mine],
                        hydro_torque=self.hydro_torque[mine], contacts=contacts, partition=partition)

@@ -86,6 +86,10 @@ class ContactMemory:
     def empty(cls) -> "ContactMemory":
         return cls(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0), np.zeros((0, 3)))
 
+    def take(self, rows: np.ndarray) -> "ContactMemory":
+        """The contacts ``rows`` (indices or a bool mask; in order, the memory stays sorted)."""
+        return ContactMemory(*(getattr(self, f.name)[rows] for f in fields(self)))
+
     def to_arrays(self) -> dict[str, np.ndarray]:
         """The memory as named arrays (for a checkpoint)."""
         return {f.name: getattr(self, f.name) for f in fields(self)}

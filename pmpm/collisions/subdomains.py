@@ -169,9 +169,7 @@ def gathered_step(comm, state, local, halo, record, walls, dt, settings, memory,
     rows, source = np.flatnonzero(found), at[found]
     for name in ("x", "v", "omega", "deposited"):
         getattr(state, name)[rows] = getattr(cluster, name)[source]
-    mine = members(result.memory.first_id, state.id)
-    kept = ContactMemory(result.memory.first_id[mine], result.memory.second_id[mine],
-                         result.memory.normal_impulse[mine], result.memory.tangential_impulse[mine])
+    kept = result.memory.take(members(result.memory.first_id, state.id))
     return ContactStep(dict(result.stats), kept, result.walls)
 
 
