@@ -44,25 +44,41 @@ def sweeps(border, inner, watched, arm, contacts, bodies, lam_n, lam_t, neighbou
     saved = np.empty((len(watched), 6))
     change_since(watched, v, w, arm, saved)   # (saved takes their velocities)
     conjugate_step(inner[0], 2.0, inner_before, inner_direction, *stepped, True)   # (β = 2: none; p = 0)
-    done, previous, beta, stop = 0, 0.0, 2.0, False
+    # A rank with lower colours among its neighbours sweeps the first half of its inner contacts
+    # before its border: work in hand while they sweep theirs, as a rank of the lowest colour has its
+    # inner sweep while the others sweep their border. Swept right after the lower colours' copies
+    # arrived (its next ones due as it ended a sweep), it waited at once for every stall of a lower
+    # rank, each sweep. A send is waited on before its buffer takes the next sweep's copies.
+    half = len(inner[0]) // 2 if n_lower > 0 else 0
+    early = (inner[0][:half], inner[1][:half], inner[2][:half], inner_before[:half])
+    late = (inner[0][half:], inner[1][half:], inner[2][half:], inner_before[half:])
+    done, previous, beta, stop, posted = 0, 0.0, 2.0, False, False
     oldest, in_flight = 0, 0   # the stopping tests being reduced: slots oldest, oldest + 1, ... (mod TESTS)
     waited = 0.0
     while not stop:
-        # the border's conjugate step (of the sweep before) and sweep after the lower colours', then the
-        # inner sweep and its conjugate step (no other rank's body) while the higher colours sweep theirs
+        # the inner sweep's first half (on a rank with lower colours), the border's conjugate step (of
+        # the sweep before) and sweep after the lower colours', then the rest of the inner sweep and
+        # the inner conjugate step (no other rank's body) while the higher colours sweep their border
+        size = sweep_from(*early, first, second, normal, r_first, r_second, u_wall, target, mu, inv_m, inv_i, v, w,
+                          lam_n, lam_t)
         start = clock()
         for k in range(n_lower):
             _take(swept[swept_at[k]:swept_at[k + 1]], incoming[swept_at[k]:swept_at[k + 1]], neighbours[k],
                   SWEEP_TAG, v, w, status, mpi)
         waited += clock() - start
         conjugate_step(border[0], beta, border_before, border_direction, *stepped, True)
-        size = sweep_from(border[0], border[1], border[2], border_before, first, second, normal, r_first, r_second,
-                          u_wall, target, mu, inv_m, inv_i, v, w, lam_n, lam_t)
+        size += sweep_from(border[0], border[1], border[2], border_before, first, second, normal, r_first, r_second,
+                           u_wall, target, mu, inv_m, inv_i, v, w, lam_n, lam_t)
+        start = clock()
+        if posted:   # the copies of the sweep before have left the buffer
+            wait_all(held, count, status, mpi)
+        waited += clock() - start
         for k in range(count):
             _post(swept[swept_at[k]:swept_at[k + 1]], outgoing[swept_at[k]:swept_at[k + 1]], neighbours[k],
                   SWEEP_TAG, v, w, held, k, mpi)
-        size += sweep_from(inner[0], inner[1], inner[2], inner_before, first, second, normal, r_first, r_second,
-                           u_wall, target, mu, inv_m, inv_i, v, w, lam_n, lam_t)
+        posted = True
+        size += sweep_from(*late, first, second, normal, r_first, r_second, u_wall, target, mu, inv_m, inv_i, v, w,
+                           lam_n, lam_t)
         done += 1
         if in_flight == 2:   # the test of the sweep before the last, reduced meanwhile
             start = clock()
@@ -79,13 +95,13 @@ def sweeps(border, inner, watched, arm, contacts, bodies, lam_n, lam_t, neighbou
         for k in range(n_lower, count):
             _take(swept[swept_at[k]:swept_at[k + 1]], incoming[swept_at[k]:swept_at[k + 1]], neighbours[k],
                   SWEEP_TAG, v, w, status, mpi)
-        wait_all(held, count, status, mpi)
         waited += clock() - start
         slot = (oldest + in_flight) % TESTS
         largest[slot] = change_since(watched, v, w, arm, saved)
         post_maximum(largest[slot:slot + 1], reduced[slot:slot + 1], held, count + slot, mpi)
         in_flight += 1
     start = clock()
+    wait_all(held, count, status, mpi)
     for _ in range(in_flight):
         wait(held, count + oldest, status, mpi)
         oldest = (oldest + 1) % TESTS

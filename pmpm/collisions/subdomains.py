@@ -13,8 +13,9 @@ can act, counted once each, by the owner of their lower-id particle). Then:
   sweeps follow one another in one order: the ranks are coloured (two holding a particle together
   apart), and in each sweep a rank sweeps its *border* contacts (touching a particle another rank
   holds) after taking the lower colours' copies of the shared particles, passes its copies on, and
-  sweeps its *inner* contacts while the higher colours sweep their border (``block_sweeps``; one
-  message each way per pair of ranks sharing particles, per sweep). So a sweep over all ranks is
+  sweeps its *inner* contacts while the higher colours sweep their border (a rank with lower colours
+  sweeps the first half of its inner contacts before its border, while they sweep theirs;
+  ``block_sweeps``; one message each way per pair of ranks sharing particles, per sweep). So a sweep over all ranks is
   a Gauss–Seidel sweep of one rank over the contacts ordered by colour, the copies stay equal to
   the bit, and each rank takes the nonsmooth conjugate-gradient step of its contacts after each
   sweep, as one rank does (its own step length). The stopping test, the energy check and the
@@ -234,10 +235,12 @@ def block_sweeps(halo: Halo, rows, contacts, target, mu, bodies, lam_n, lam_t, b
     holding a particle together differ, and a rank sweeps its *border* contacts (those touching a
     particle another rank holds) once the lower colours have sent theirs, sends its copies of the
     shared particles on, then sweeps its *inner* contacts (touching no shared particle) while the
-    higher colours sweep their border, whose copies it takes at the end. Inner contacts of different
-    ranks share no body, so the sweep is that of one rank over the contacts ordered by colour
-    (border before inner within a rank), every contact seeing the velocities its bodies have just
-    then, and the copies stay equal to the bit. Each rank's conjugate-gradient step (``impulses.sweep``'s
+    higher colours sweep their border, whose copies it takes at the end; a rank with lower colours
+    sweeps the first half of its inner contacts before its border, while those sweep theirs (else a
+    stall of a lower rank held it at once, each sweep). Inner contacts of different ranks share no
+    body, so the sweep is that of one rank over the contacts ordered by colour (within a rank: the
+    first half of its inner contacts where it has lower colours, its border, the rest), every
+    contact seeing the velocities its bodies have just then, and the copies stay equal to the bit. Each rank's conjugate-gradient step (``impulses.sweep``'s
     notes, with this rank's step length: one reduced over the ranks converged no better) follows its
     inner sweep at once, and its border sweep's after the lower colours' copies arrive (before, it
     would be overwritten). A sweep's test is reduced over the ranks while the next two sweeps run (a
