@@ -45,10 +45,10 @@ def sweeps(border, inner, watched, arm, contacts, bodies, lam_n, lam_t, neighbou
     change_since(watched, v, w, arm, saved)   # (saved takes their velocities)
     conjugate_step(inner[0], 2.0, inner_before, inner_direction, *stepped, True)   # (β = 2: none; p = 0)
     # A rank with lower colours among its neighbours sweeps the first half of its inner contacts
-    # before its border: work in hand while they sweep theirs, as a rank of the lowest colour has its
-    # inner sweep while the others sweep their border. Swept right after the lower colours' copies
-    # arrived (its next ones due as it ended a sweep), it waited at once for every stall of a lower
-    # rank, each sweep. A send is waited on before its buffer takes the next sweep's copies.
+    # before its border: work in hand while they sweep theirs, as the lowest colour has its inner
+    # sweep while the others sweep their border. With its border first, it would end each sweep just
+    # as the lower colours' next copies are due, and wait for every stall of theirs at once. A send
+    # is waited on only before its buffer takes the next sweep's copies.
     half = len(inner[0]) // 2 if n_lower > 0 else 0
     early = (inner[0][:half], inner[1][:half], inner[2][:half], inner_before[:half])
     late = (inner[0][half:], inner[1][half:], inner[2][half:], inner_before[half:])

@@ -40,21 +40,18 @@ def cache_is_current(folder: Path = HERE / "__pycache__") -> bool:
 
 
 def clear_stale_cache() -> None:
-    """Remove this package's numba cache files if any of its sources changed since they were made."""
-    if os.environ.get("NUMBA_CACHE_DIR"):
-        return
-    digest = sources_digest()
+    """Remove this package's numba cache files if any of its sources changed since they were made
+    (``cache_is_current``), and stamp the cache with the sources' digest."""
     folder = HERE / "__pycache__"
-    stamp = folder / "kernels.sha1"
+    if cache_is_current(folder):
+        return
     try:
-        if stamp.exists() and stamp.read_text() == digest:
-            return
         folder.mkdir(exist_ok=True)
         for path in chain_globs(folder, ("*.nbi", "*.nbc")):
             path.unlink(missing_ok=True)
         temporary = folder / f"kernels.sha1.{os.getpid()}"
-        temporary.write_text(digest)
-        os.replace(temporary, stamp)
+        temporary.write_text(sources_digest())
+        os.replace(temporary, folder / "kernels.sha1")
     except OSError:  # a read-only installation: numba falls back on its own cache folder
         pass
 
