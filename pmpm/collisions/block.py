@@ -52,7 +52,7 @@ def sweeps(border, inner, watched, arm, contacts, bodies, lam_n, lam_t, neighbou
     half = len(inner[0]) // 2 if n_lower > 0 else 0
     early = (inner[0][:half], inner[1][:half], inner[2][:half], inner_before[:half])
     late = (inner[0][half:], inner[1][half:], inner[2][half:], inner_before[half:])
-    done, previous, beta, stop, posted = 0, 0.0, 2.0, False, False
+    done, previous, beta, stop = 0, 0.0, 2.0, False
     oldest, in_flight = 0, 0   # the stopping tests being reduced: slots oldest, oldest + 1, ... (mod TESTS)
     waited = 0.0
     while not stop:
@@ -70,13 +70,12 @@ def sweeps(border, inner, watched, arm, contacts, bodies, lam_n, lam_t, neighbou
         size += sweep_from(border[0], border[1], border[2], border_before, first, second, normal, r_first, r_second,
                            u_wall, target, mu, inv_m, inv_i, v, w, lam_n, lam_t)
         start = clock()
-        if posted:   # the copies of the sweep before have left the buffer
+        if done > 0:   # the copies of the sweep before have left the buffer
             wait_all(held, count, status, mpi)
         waited += clock() - start
         for k in range(count):
             _post(swept[swept_at[k]:swept_at[k + 1]], outgoing[swept_at[k]:swept_at[k + 1]], neighbours[k],
                   SWEEP_TAG, v, w, held, k, mpi)
-        posted = True
         size += sweep_from(*late, first, second, normal, r_first, r_second, u_wall, target, mu, inv_m, inv_i, v, w,
                            lam_n, lam_t)
         done += 1

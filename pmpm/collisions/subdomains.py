@@ -6,21 +6,21 @@ record is in the order of the 1-rank record restricted to it), keeping the conta
 one owned particle; the ranks agree on the step's search speed and on the regime (the contacts that
 can act, counted once each, by the owner of their lower-id particle). Then:
 
-- a **dense step with many contacts** (a bed, a hopper: at least ``gather_contacts`` that can
-  act, over all ranks) is a block Gauss–Seidel that conforms to the subdomains
-  (Preclik & Rüde 2015): a contact is solved by the rank that owns its lower-id particle (walls:
-  the particle's owner), each rank sweeps its contacts in the record's order, and the ranks'
-  sweeps follow one another in one order: the ranks are coloured (two holding a particle together
-  apart), and in each sweep a rank sweeps its *border* contacts (touching a particle another rank
-  holds) after taking the lower colours' copies of the shared particles, passes its copies on, and
-  sweeps its *inner* contacts while the higher colours sweep their border (a rank with lower colours
-  sweeps the first half of its inner contacts before its border, while they sweep theirs;
-  ``block_sweeps``; one message each way per pair of ranks sharing particles, per sweep). So a
-  sweep over all ranks is a Gauss–Seidel sweep of one rank over the contacts ordered by colour,
-  the copies stay equal to the bit, and each rank takes the nonsmooth conjugate-gradient step of
-  its contacts after each sweep, as one rank does (its own step length). The stopping test, the energy check and the
-  deposition flags meet in reductions, so every rank makes the same number of sweeps. Overlaps
-  are removed per rank over its contacts (positions, each rank keeping its owned particles').
+- a **dense step with many contacts** (a bed, a hopper: at least ``gather_contacts`` that can act,
+  over all ranks) is a block Gauss–Seidel that conforms to the subdomains (Preclik & Rüde 2015): a
+  contact is solved by the rank that owns its lower-id particle (walls: the particle's owner), each
+  rank sweeps its contacts in the record's order, and the ranks' sweeps follow one another in one
+  order: the ranks are coloured (two holding a particle together apart), and in each sweep a rank
+  sweeps its *border* contacts (touching a particle another rank holds) after taking the lower
+  colours' copies of the shared particles, passes its copies on, and sweeps its *inner* contacts
+  while the higher colours sweep their border (a rank with lower colours sweeps the first half of
+  its inner contacts before its border, while they sweep theirs; ``block_sweeps``; one message each
+  way per pair of ranks sharing particles, per sweep). So a sweep over all ranks is a Gauss–Seidel
+  sweep of one rank over the contacts ordered by colour, the copies stay equal to the bit, and each
+  rank takes the nonsmooth conjugate-gradient step of its contacts after each sweep, as one rank
+  does (its own step length). The stopping test, the energy check and the deposition flags meet in
+  reductions, so every rank makes the same number of sweeps. Overlaps are removed per rank over its
+  contacts (positions, each rank keeping its owned particles').
 - any other step (an event step, or a dense one with fewer contacts) gathers the particles of
   every contact, from their owners, on every rank, which all take the same step
   (``advance_with_collisions``, with the global search speed and particle count) and keep their
@@ -237,17 +237,17 @@ def block_sweeps(halo: Halo, rows, contacts, target, mu, bodies, lam_n, lam_t, b
     shared particles on, then sweeps its *inner* contacts (touching no shared particle) while the
     higher colours sweep their border, whose copies it takes at the end; a rank with lower colours
     sweeps the first half of its inner contacts before its border, while those sweep theirs (else a
-    stall of a lower rank would hold it at once, each sweep). Inner contacts of different ranks share no
-    body, so the sweep is that of one rank over the contacts ordered by colour (within a rank: the
-    first half of its inner contacts where it has lower colours, its border, the rest), every
-    contact seeing the velocities its bodies have just then, and the copies stay equal to the bit.
-    Each rank's conjugate-gradient step (``impulses.sweep``'s notes, with this rank's step length:
-    one reduced over the ranks converged no better) follows its inner sweep at once, and its border
-    sweep's after the lower colours' copies arrive (before, it would be overwritten). A sweep's
-    test is reduced over the ranks while the next two sweeps run (a nonblocking reduction, waited
-    on once this rank has the higher colours' copies of the sweep after it, so every rank has
-    started it: waiting one sweep sooner held the lowest colour until the highest finished its
-    inner sweep, every sweep): the sweeps stop two sweeps after the one that converged.
+    stall of a lower rank would hold it at once, each sweep). Inner contacts of different ranks
+    share no body, so the sweep is that of one rank over the contacts ordered by colour (within a
+    rank: the first half of its inner contacts where it has lower colours, its border, the rest),
+    every contact seeing the velocities its bodies have just then, and the copies stay equal to the
+    bit. Each rank's conjugate-gradient step (``impulses.sweep``'s notes, with this rank's step
+    length: one reduced over the ranks converged no better) follows its inner sweep at once, and its
+    border sweep's after the lower colours' copies arrive (before, it would be overwritten). A
+    sweep's test is reduced over the ranks while the next two sweeps run (a nonblocking reduction,
+    waited on once this rank has the higher colours' copies of the sweep after it, so every rank has
+    started it: waiting one sweep sooner held the lowest colour until the highest finished its inner
+    sweep, every sweep): the sweeps stop two sweeps after the one that converged.
     """
     first, second, normal, r_first, r_second, u_wall = contacts
     inv_m, inv_i, v, w = bodies
