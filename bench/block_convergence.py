@@ -3,7 +3,7 @@ accuracy near the cut (docs/collisions.md, "Accuracy on several ranks").
 
     OMP_NUM_THREADS=1 .venv/bin/python bench/block_convergence.py [--sweeps 20,30,40] [--count 1500] [--keep]
 
-The tests' small hopper (1,500 spheres, d = 4 mm, ``test_small_hopper_on_one_and_two_ranks``)
+The tests' small hopper (1,500 spheres, d = 4 mm, ``test_small_hopper_on_one_to_four_ranks``)
 discharges for 0.3 s on 1 rank (ending in a checkpoint, which holds the contacts' impulses). From
 it one step of 2 ms (a dense step) is taken: with 2000 sweeps on 1 rank (the reference), and with
 each ``--sweeps`` budget (``collisions.dense_sweeps``) on 1 rank and on 2 ranks solving it by block
