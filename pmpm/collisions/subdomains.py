@@ -81,12 +81,12 @@ def advance_owned(comm, partition: Partition, state: ParticleState, walls: Walls
         travel = kernels.step_arrays.travels(state.v, state.moving, dt, reach)
         width = (state.radius + r_max + travel + travel_of(top, dt, reach)) * (1 + 1e-9)
     search = (comm, partition, state, used_walls, dt, reach, settings, kernels)
-    halo, local, bodies, (record, dense, acting) = ghosts_and_contacts(*search, width)
+    halo, local, bodies, (record, dense, acting) = ghosts_and_contacts(*search, width, dense_likely)
     if not dense or acting < settings.gather_contacts:
         sent = 0
         if dense_likely:   # the same search over the ghosts of the full reach
             sent = halo.sent
-            halo, local, bodies, (record, _, _) = ghosts_and_contacts(*search, full_width)
+            halo, local, bodies, (record, _, _) = ghosts_and_contacts(*search, full_width, False)
         step = gathered_step(comm, state, local, halo, record, walls, dt, settings, memory, speed, population)
         step.stats.update(owned=len(state), ghosts=len(local) - len(state), exchanged_bytes=sent + halo.sent)
         return step
@@ -109,14 +109,15 @@ def advance_owned(comm, partition: Partition, state: ParticleState, walls: Walls
     return ContactStep(summed_stats(comm, counters, extra), memory, walls_after)
 
 
-def ghosts_and_contacts(comm, partition, state, walls, dt, reach, settings, kernels, width) -> tuple:
+def ghosts_and_contacts(comm, partition, state, walls, dt, reach, settings, kernels, width, likely_dense) -> tuple:
     """Collective. The ghosts within ``width`` (per owned particle, m) of each rank's box, and the
     contacts among the local particles: (halo, local particles, their ``Bodies``, ``find_contacts``'
-    (record, dense, acting))."""
+    (record, dense, acting)), searched by travel first where the step is ``likely_dense``."""
     halo, local = Halo.build(comm, partition, state, width)
     bodies = Bodies.of(local)
     found = find_contacts(bodies, walls, dt, reach, settings.restitution, settings.friction, kernels,
-                          dense_contacts=settings.dense_contacts, owned=halo.owned, comm=comm)
+                          dense_contacts=settings.dense_contacts, owned=halo.owned, comm=comm,
+                          likely_dense=likely_dense)
     return halo, local, bodies, found
 
 
