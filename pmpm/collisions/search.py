@@ -1,13 +1,13 @@
 """Broad search: the contacts that may act within a step, as a ``ContactRecord``.
 
 Particle pairs come from a cell list of the centres (every pair closer than r_i + r_j + reach;
-``cell_list``; where the step is likely dense (the step before was), first those closer than r_i + r_j + each one's travel
-in the step, which hold every pair that can act), wall candidates from the walls' grid
-(``Walls.near``: boxes and bounding spheres of the triangles, grown by how far each moves in the
-step); the compiled narrow phase (``narrow``) keeps those whose gap is within reach and computes
-gap, normal and contact time. ``reach`` bounds how far two bodies can close in a step: twice the
-largest speed × dt between particles, once it (plus the wall's own travel) for a wall; a particle
-that becomes faster within the step makes the solver search again
+``cell_list``; where the step is likely dense (the step before was), first those closer than
+r_i + r_j + each one's travel in the step, which hold every pair that can act), wall candidates
+from the walls' grid (``Walls.near``: boxes and bounding spheres of the triangles, grown by how
+far each moves in the step); the compiled narrow phase (``narrow``) keeps those whose gap is
+within reach and computes gap, normal and contact time. ``reach`` bounds how far two bodies can
+close in a step: twice the largest speed × dt between particles, once it (plus the wall's own
+travel) for a wall; a particle that becomes faster within the step makes the solver search again
 (``solver.advance_with_collisions``).
 """
 from __future__ import annotations
@@ -97,7 +97,8 @@ def find_contacts(bodies, walls: Walls | None, dt: float, reach: float, restitut
     # A pair can act only if its gap closes within dt at the relative speed of the centres, at most
     # the sum of their speeds: searched by each particle's own travel first, the pairs that can
     # act are all found (the dense step needs no others) among far fewer than within the reach of
-    # the fastest particle. An event step needs every pair within reach: searched again then.
+    # the fastest particle. An event step needs every pair within reach: searched again then, or
+    # at once where the step before was not dense either.
     by_travel = dense_contacts > 0 and likely_dense
     travel = kernels.step_arrays.travels(v[:n], None, dt, reach) if by_travel else reach
     pairs, keep, acts, counted, normal, gap, time = pair_contacts(bodies, travel, reach, dt, kernels, around, owned)
