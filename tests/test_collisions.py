@@ -857,7 +857,7 @@ def test_pair_search_matches_the_direct_test(spread):
 def test_a_dense_step_finds_its_contacts_by_each_particle_s_travel():
     """The dense step's contacts are searched by each particle's own travel, not by the reach of
     the fastest: the same contacts, with the same gaps, normals and times, as the search by reach.
-    A step not expected to be dense (``likely_dense=False``: searched by reach at once) takes the
+    A step not expected to be dense (``dense_likely=False``: searched by reach at once) takes the
     same decision and the same record, dense or not."""
     from pmpm.collisions.jit import kernels
     from pmpm.collisions.search import find_contacts
@@ -880,7 +880,7 @@ def test_a_dense_step_finds_its_contacts_by_each_particle_s_travel():
         assert np.array_equal(getattr(by_travel, name), getattr(by_reach, name)[can_act]), name
     for dense_contacts, expected in ((10, by_travel), (10 ** 9, by_reach)):
         at_once, dense_at_once, acting_at_once = find_contacts(bodies, None, dt, reach, 0.9, 0.3, kernels(),
-                                                               dense_contacts=dense_contacts, likely_dense=False)
+                                                               dense_contacts=dense_contacts, dense_likely=False)
         assert dense_at_once == (dense_contacts == 10) and acting_at_once == acting
         for name in ("first", "second", "gap", "normal", "time"):
             assert np.array_equal(getattr(at_once, name), getattr(expected, name)), name

@@ -71,7 +71,7 @@ def pair_contacts(bodies, search_reach, reach: float, dt: float, kernels, around
 
 def find_contacts(bodies, walls: Walls | None, dt: float, reach: float, restitution: float, friction: float,
                   kernels, around: np.ndarray | None = None, dense_contacts: int = 0, owned: np.ndarray | None = None,
-                  comm=None, likely_dense: bool = True) -> tuple[ContactRecord, bool, int]:
+                  comm=None, dense_likely: bool = True) -> tuple[ContactRecord, bool, int]:
     """The step's contacts (see the module's docstring), whether the step is dense: at least
     ``dense_contacts`` (> 0) of them can act (touching, or closing within ``dt`` at the relative
     speed of the centres), and how many can act; a dense step's record holds only those. With
@@ -87,7 +87,7 @@ def find_contacts(bodies, walls: Walls | None, dt: float, reach: float, restitut
     owned : (n,) bool, on a rank of several (``subdomains``): only the contacts of these particles
         are kept, and the contacts that can act are counted once, by the owner of ``first``, and
         summed over ``comm`` (collective then), so every rank takes the same dense decision.
-    likely_dense : whether the step is expected to be dense (the step before was): if not, the
+    dense_likely : whether the step is expected to be dense (the step before was): if not, the
         pairs are searched within the reach at once, not by travel first and then again. The
         same record and decision either way: the search by travel finds every pair that can act.
     """
@@ -99,7 +99,7 @@ def find_contacts(bodies, walls: Walls | None, dt: float, reach: float, restitut
     # act are all found (the dense step needs no others) among far fewer than within the reach of
     # the fastest particle. An event step needs every pair within reach: searched again then, or
     # at once where the step before was not dense either.
-    by_travel = dense_contacts > 0 and likely_dense
+    by_travel = dense_contacts > 0 and dense_likely
     travel = kernels.step_arrays.travels(v[:n], None, dt, reach) if by_travel else reach
     pairs, keep, acts, counted, normal, gap, time = pair_contacts(bodies, travel, reach, dt, kernels, around, owned)
     wall_part = None

@@ -134,7 +134,7 @@ def advance_with_collisions(state: ParticleState, walls: Walls | None, dt: float
         counters[EXCEEDED] = exceeded
         record, dense, _ = find_contacts(bodies, walls, dt, 2.0 * speed * dt, settings.restitution, settings.friction,
                                       kernels, dense_contacts=settings.dense_contacts,
-                                      likely_dense=len(memory) >= settings.dense_contacts)
+                                      dense_likely=len(memory) >= settings.dense_contacts)
         warm_n, warm_t = memory.recall(record, state.id)
         extra["contacts"] = len(record)
         if dense:

@@ -86,7 +86,7 @@ def advance_owned(comm, partition: Partition, state: ParticleState, walls: Walls
         sent = 0
         if dense_likely:   # the same search over the ghosts of the full reach
             sent = halo.sent
-            halo, local, bodies, (record, _, _) = ghosts_and_contacts(*search, full_width, False)
+            halo, local, bodies, (record, _, _) = ghosts_and_contacts(*search, full_width, dense_likely=False)
         step = gathered_step(comm, state, local, halo, record, walls, dt, settings, memory, speed, population)
         step.stats.update(owned=len(state), ghosts=len(local) - len(state), exchanged_bytes=sent + halo.sent)
         return step
@@ -109,15 +109,15 @@ def advance_owned(comm, partition: Partition, state: ParticleState, walls: Walls
     return ContactStep(summed_stats(comm, counters, extra), memory, walls_after)
 
 
-def ghosts_and_contacts(comm, partition, state, walls, dt, reach, settings, kernels, width, likely_dense) -> tuple:
+def ghosts_and_contacts(comm, partition, state, walls, dt, reach, settings, kernels, width, dense_likely) -> tuple:
     """Collective. The ghosts within ``width`` (per owned particle, m) of each rank's box, and the
     contacts among the local particles: (halo, local particles, their ``Bodies``, ``find_contacts``'
-    (record, dense, acting)), searched by travel first where the step is ``likely_dense``."""
+    (record, dense, acting)), searched by travel first where the step is ``dense_likely``."""
     halo, local = Halo.build(comm, partition, state, width)
     bodies = Bodies.of(local)
     found = find_contacts(bodies, walls, dt, reach, settings.restitution, settings.friction, kernels,
                           dense_contacts=settings.dense_contacts, owned=halo.owned, comm=comm,
-                          likely_dense=likely_dense)
+                          dense_likely=dense_likely)
     return halo, local, bodies, found
 
 
